@@ -1,0 +1,1 @@
+"""Garment draping and cloth optimisation on polygeo's geometry (GAPS, OneFit, GarNet, FNOpt)."""

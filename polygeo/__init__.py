@@ -1,0 +1,62 @@
+"""polygeo: deformable surfaces as local polynomial jets.
+
+Sub-modules (imported on first access, so that ``import polygeo`` stays cheap):
+
+``jets``        monomial basis of n-jets, batched weighted least-squares fitting, evaluation
+``frames``      PCA frames, quaternions, orientations (s, R, T)
+``diffgeo``     fundamental forms, shape operator, curvatures, Monge form
+``neighbors``   k-NN / radius neighbourhoods, mesh k-rings
+``covariance``  per-vertex covariance descriptors and the GAPS inextensibility residual
+``mesh``        edge lengths, areas, normals, adjacency of triangle meshes
+``io``          reading and writing point clouds and meshes
+``partition``   ACVD-like partition of a surface into patches
+``patches``     PatchSet: oriented n-jet patches (PolyFit)
+``stn``         rigid spatial transformer refining patch orientations
+``render``      differentiable soft rasterizer for CPU
+``synthetic``   analytic surfaces and synthetic patch families
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+__version__ = "0.1.0"
+
+_SUBMODULES = (
+    "jets",
+    "frames",
+    "diffgeo",
+    "neighbors",
+    "covariance",
+    "mesh",
+    "io",
+    "partition",
+    "patches",
+    "stn",
+    "render",
+    "synthetic",
+)
+# Public functions re-exported at the top level: name -> defining sub-module.
+_FUNCTIONS = {
+    "differential_quantities": "estimate",
+    "DifferentialQuantities": "estimate",
+}
+
+__all__ = ["__version__", *_SUBMODULES, *_FUNCTIONS]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _SUBMODULES:
+        module = importlib.import_module(f".{name}", __name__)
+        globals()[name] = module
+        return module
+    if name in _FUNCTIONS:
+        value = getattr(importlib.import_module(f".{_FUNCTIONS[name]}", __name__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'polygeo' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

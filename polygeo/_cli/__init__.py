@@ -1,0 +1,1 @@
+"""Sub-commands of the ``polygeo`` command line (one module each, registered as plug-ins)."""

@@ -1,0 +1,1 @@
+"""PolySfT: shape-from-template on image sequences with oriented n-jet patches."""
