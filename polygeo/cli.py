@@ -28,7 +28,12 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     eps = sorted(entry_points(group="polygeo.commands"), key=lambda e: e.name)
     for ep in eps:
-        ep.load()(sub)
+        try:
+            register = ep.load()
+        except ImportError as exc:  # a broken or partial install: say so, keep the others usable
+            print(f"polygeo: warning: command {ep.name!r} unavailable ({exc})", file=sys.stderr)
+            continue
+        register(sub)
     return parser
 
 
