@@ -1,0 +1,203 @@
+"""Per-vertex covariance descriptors and the GAPS inextensibility residual.
+
+For a vertex ``i`` with neighbourhood ``N_i`` (a mesh 1-ring from
+:func:`polygeo.neighbors.mesh_k_ring`, or k nearest neighbours from
+:func:`polygeo.neighbors.knn`) the covariance of seed thesis eq. (31) is
+
+    C_i = 1/|N_i| sum_{j in N_i} (x_j - xbar_i)(x_j - xbar_i)^T,   xbar_i = mean of the x_j.
+
+A rigid motion ``y = R x + T`` maps ``C_i`` to ``R C_i R^T``, which keeps its singular values
+(eigenvalues, ``C`` being symmetric positive semi-definite). GAPS (thesis eq. (33), (44); GAPS
+paper eq. (4), (15)) turns this into an inextensibility loss: the template's singular values
+``sigma_j`` must remain roots of the deformed covariance's characteristic polynomial:
+
+    L_inext = k_i sum_vertices sum_{j=1..3} |det(C - k_ext sigma_j I)|.
+
+All functions are differentiable in torch (float64 passes ``gradcheck``) and accept a leading
+batch ``(..., N, 3)`` of point sets sharing one neighbourhood structure.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from ._validate import as_tensor, check_choice, check_finite, check_shape, is_numpy_like, to_like
+
+__all__ = ["vertex_covariance", "singular_values", "inextensibility_residual"]
+
+
+def _index_mask(index: Any, mask: Any, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    idx = as_tensor(index, "index", floating=False)
+    if idx.is_floating_point() or idx.dtype == torch.bool:
+        raise TypeError(f"index: expected an integer array, got dtype {idx.dtype}")
+    check_shape(idx, "index", ("N", "K"))
+    if idx.shape[0] != n:
+        raise ValueError(f"index: expected shape ({n}, K) to match points, got {tuple(idx.shape)}")
+    idx = idx.to(torch.int64)
+    if mask is None:
+        m = idx >= 0
+    else:
+        m = as_tensor(mask, "mask", floating=False)
+        if m.dtype != torch.bool:
+            raise TypeError(f"mask: expected a bool array, got dtype {m.dtype}")
+        check_shape(m, "mask", tuple(idx.shape))
+        m = m & (idx >= 0)
+    valid_idx = idx[m]
+    if valid_idx.numel() and int(valid_idx.max()) >= n:
+        raise ValueError(f"index: expected values in [0, {n - 1}], got {int(valid_idx.max())}")
+    return torch.where(m, idx, torch.zeros_like(idx)), m
+
+
+def vertex_covariance(points: Any, index: Any, mask: Any = None) -> Any:
+    """Covariance of each vertex's neighbourhood (thesis eq. (31)).
+
+    Parameters
+    ----------
+    points : (..., N, 3) float
+        Point or vertex coordinates (unit L); a leading batch shares the neighbourhoods.
+    index : (N, K) int
+        Neighbour indices of each vertex, ``-1`` for padding. Whether the vertex itself is
+        part of its neighbourhood is the caller's choice (``mesh_k_ring`` and ``knn`` include
+        it by default).
+    mask : (N, K) bool, optional
+        Valid entries; defaults to ``index >= 0``.
+
+    Returns
+    -------
+    (..., N, 3, 3) float
+        Symmetric positive semi-definite covariances (unit L^2), normalised by the number of
+        valid neighbours ``|N_i|``; an empty neighbourhood gives the zero matrix.
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, out-of-range indices or non-finite points.
+    TypeError
+        Non-numeric points or a non-integer index / non-bool mask.
+    """
+    numpy_in = is_numpy_like(points)
+    x = as_tensor(points, "points")
+    check_shape(x, "points", ("...", "N", 3))
+    check_finite(x, "points")
+    n = x.shape[-2]
+    idx, m = _index_mask(index, mask, n)
+    nb = x[..., idx, :]  # (..., N, K, 3)
+    w = m.to(x.dtype)[..., None]  # (N, K, 1)
+    cnt = w.sum(-2).clamp_min(1.0)  # (N, 1)
+    mean = (nb * w).sum(-2) / cnt  # (..., N, 3)
+    d = (nb - mean[..., None, :]) * w  # (..., N, K, 3)
+    cov = d.transpose(-1, -2) @ d / cnt[..., None]  # (..., N, 3, 3)
+    return to_like(cov, numpy_in)
+
+
+def singular_values(cov: Any) -> Any:
+    """Singular values of symmetric positive semi-definite 3x3 covariances, descending.
+
+    Parameters
+    ----------
+    cov : (..., 3, 3) float
+        Covariance matrices (e.g. from :func:`vertex_covariance`); only the lower triangle is
+        read (they are symmetrised).
+
+    Returns
+    -------
+    (..., 3) float
+        ``sigma_1 >= sigma_2 >= sigma_3 >= 0`` (the eigenvalues, clamped at 0 against
+        round-off), unit of ``cov``.
+
+    Raises
+    ------
+    ValueError
+        Bad shape or non-finite values.
+    TypeError
+        Non-numeric input.
+    """
+    numpy_in = is_numpy_like(cov)
+    c = as_tensor(cov, "cov")
+    check_shape(c, "cov", ("...", 3, 3))
+    check_finite(c, "cov")
+    ev = torch.linalg.eigvalsh(0.5 * (c + c.transpose(-1, -2)))
+    return to_like(ev.flip(-1).clamp_min(0.0), numpy_in)
+
+
+def _det3(a: torch.Tensor) -> torch.Tensor:
+    """Determinant of (..., 3, 3) by cofactors (smooth everywhere, unlike LU's backward)."""
+    return (
+        a[..., 0, 0] * (a[..., 1, 1] * a[..., 2, 2] - a[..., 1, 2] * a[..., 2, 1])
+        - a[..., 0, 1] * (a[..., 1, 0] * a[..., 2, 2] - a[..., 1, 2] * a[..., 2, 0])
+        + a[..., 0, 2] * (a[..., 1, 0] * a[..., 2, 1] - a[..., 1, 1] * a[..., 2, 0])
+    )
+
+
+def inextensibility_residual(
+    cov: Any,
+    template_sigma: Any,
+    k_ext: Any = 1.0,
+    *,
+    weight: float = 1.0,
+    reduction: str = "sum",
+) -> Any:
+    """GAPS inextensibility residual, thesis eq. (44): ``k_i sum_v sum_j |det(C - k_ext s_j I)|``.
+
+    ``C`` is the covariance of the deformed garment's neighbourhood of a vertex (from
+    :func:`vertex_covariance` on the current vertices), ``sigma_j`` (j = 1..3) are the singular
+    values of the covariance of the same neighbourhood on the undeformed template (precomputed
+    once with :func:`singular_values`), and ``k_ext`` is the allowed extension: 1 demands
+    inextensibility (each ``sigma_j`` must be an eigenvalue of ``C``, which holds for any rigid
+    motion of the neighbourhood), ``k_ext > 1`` lets the neighbourhood stretch (GAPS raises it
+    progressively, eq. (45), where the garment collides with the body). ``k_i`` (``weight``)
+    balances the loss against the others.
+
+    Parameters
+    ----------
+    cov : (..., N, 3, 3) float
+        Covariances ``C`` of the deformed neighbourhoods (unit L^2).
+    template_sigma : (N, 3) or (..., N, 3) float
+        Template singular values ``sigma_j`` (unit L^2).
+    k_ext : float or (..., N) float
+        Extension factor(s), finite and >= 0, broadcast per vertex.
+    weight : float
+        The balancing factor ``k_i``.
+    reduction : {"sum", "none"}
+        ``"sum"``: the scalar loss over all vertices (and batch items); ``"none"``: the per
+        vertex term ``(..., N)`` (times ``weight``).
+
+    Returns
+    -------
+    float tensor or array
+        Scalar (``"sum"``) or ``(..., N)``, unit L^6.
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, non-finite values, negative ``k_ext`` or an unknown reduction.
+    TypeError
+        Non-numeric input.
+    """
+    check_choice(reduction, "reduction", ("sum", "none"))
+    numpy_in = is_numpy_like(cov)
+    c = as_tensor(cov, "cov")
+    check_shape(c, "cov", ("...", "N", 3, 3))
+    check_finite(c, "cov")
+    s = as_tensor(template_sigma, "template_sigma", dtype=c.dtype)
+    check_shape(s, "template_sigma", ("...", c.shape[-3], 3))
+    check_finite(s, "template_sigma")
+    k = as_tensor(k_ext, "k_ext", dtype=c.dtype)
+    check_finite(k, "k_ext")
+    if bool((k < 0).any()):
+        raise ValueError(f"k_ext: expected values >= 0, got min {float(k.min())}")
+    if k.ndim > 0:
+        try:
+            torch.broadcast_shapes(k.shape, c.shape[:-2])
+        except RuntimeError as exc:
+            raise ValueError(
+                f"k_ext: expected a scalar or shape broadcastable to {tuple(c.shape[:-2])}, "
+                f"got {tuple(k.shape)}"
+            ) from exc
+    eye = torch.eye(3, dtype=c.dtype)
+    shift = (k[..., None] * s)[..., None, None] * eye  # (..., N, 3, 3, 3): per j
+    res = _det3(c[..., None, :, :] - shift).abs().sum(-1) * float(weight)  # (..., N)
+    out = res.sum() if reduction == "sum" else res
+    return to_like(out, numpy_in)

@@ -1,0 +1,401 @@
+"""Neighbourhoods of point clouds and meshes: k-NN, radius balls, mesh k-rings, adjacency.
+
+All functions accept NumPy arrays or torch tensors and return the input's array type
+(torch tensors come back on the CPU, as int64 / the input's floating dtype). Variable-size
+neighbourhoods are padded with ``-1`` in ``index`` and ``False`` in ``mask``, never truncated
+silently.
+
+Non-finite points (NaN/inf coordinates) are never returned as neighbours of anything, and a
+non-finite query gets an empty neighbourhood (all ``-1``); this is what lets one NaN point
+among valid ones leave every other estimate untouched.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+from scipy.spatial import cKDTree
+
+from ._validate import as_tensor, check_int, check_positive, check_shape, is_numpy_like
+
+__all__ = [
+    "Neighbors",
+    "KRing",
+    "knn",
+    "radius_neighbors",
+    "mesh_k_ring",
+    "vertex_adjacency",
+]
+
+
+class Neighbors(NamedTuple):
+    """Padded neighbourhoods of ``Q`` query points.
+
+    Attributes
+    ----------
+    index : (Q, K) int64
+        Indices into the searched points, nearest first; ``-1`` marks padding.
+    distance : (Q, K) float
+        Euclidean distances, same unit as the coordinates; ``inf`` where padded.
+    mask : (Q, K) bool
+        ``index >= 0``.
+    """
+
+    index: Any
+    distance: Any
+    mask: Any
+
+
+class KRing(NamedTuple):
+    """Padded mesh k-rings of every vertex.
+
+    Attributes
+    ----------
+    index : (N, K) int64
+        Vertex indices sorted by hop count then index; the vertex itself first when
+        ``include_self``; ``-1`` marks padding.
+    hops : (N, K) int64
+        Graph distance (number of edges) of each entry; ``-1`` where padded.
+    mask : (N, K) bool
+        ``index >= 0``.
+    """
+
+    index: Any
+    hops: Any
+    mask: Any
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _points_np(x: Any, name: str) -> tuple[np.ndarray, bool, torch.dtype | None]:
+    """Validate an (N, 3) coordinate array; return float64 NumPy, numpy-ness and dtype."""
+    numpy_in = is_numpy_like(x)
+    t = as_tensor(x, name)
+    check_shape(t, name, ("N", 3))
+    return t.detach().cpu().to(torch.float64).numpy(), numpy_in, t.dtype
+
+
+def _out(arr: np.ndarray, numpy_in: bool, dtype: torch.dtype | None = None) -> Any:
+    if numpy_in:
+        return arr
+    t = torch.from_numpy(np.ascontiguousarray(arr))
+    return t.to(dtype) if dtype is not None else t
+
+
+def _workers(workers: int) -> int:
+    w = check_int(workers, "workers")
+    if w == 0 or w < -1:
+        raise ValueError(f"workers: expected -1 (all cores) or a positive integer, got {w}")
+    return w
+
+
+def _put_self_first(index: np.ndarray, dist: np.ndarray, self_idx: np.ndarray) -> None:
+    """In place: make column 0 of each row the query point itself (rows of finite queries)."""
+    if index.shape[1] == 0 or self_idx.size == 0:
+        return
+    rows = np.arange(index.shape[0])
+    bad = index[:, 0] != self_idx
+    if not bad.any():
+        return
+    r = rows[bad]
+    sub = index[r]
+    hit = sub == self_idx[bad, None]
+    found = hit.any(axis=1)
+    pos = np.where(found, hit.argmax(axis=1), index.shape[1] - 1)
+    # shift entries [0, pos) right by one and put self at 0 (a swap would break the sort)
+    k = index.shape[1]
+    cols = np.arange(k)
+    src = np.where(cols[None, :] <= pos[:, None], cols[None, :] - 1, cols[None, :])
+    src[:, 0] = 0
+    new_idx = np.take_along_axis(sub, np.maximum(src, 0), axis=1)
+    new_dist = np.take_along_axis(dist[r], np.maximum(src, 0), axis=1)
+    new_idx[:, 0] = self_idx[bad]
+    new_dist[:, 0] = 0.0
+    index[r] = new_idx
+    dist[r] = new_dist
+
+
+def _tree_query(
+    pts: np.ndarray,
+    qry: np.ndarray,
+    k: int,
+    workers: int,
+    upper: float = np.inf,
+) -> tuple[np.ndarray, np.ndarray]:
+    """k-NN of finite queries among finite points; pads with -1 / inf."""
+    fin_p = np.isfinite(pts).all(axis=1)
+    fin_q = np.isfinite(qry).all(axis=1)
+    q_count = qry.shape[0]
+    index = np.full((q_count, k), -1, dtype=np.int64)
+    dist = np.full((q_count, k), np.inf, dtype=np.float64)
+    n_fin = int(fin_p.sum())
+    if k == 0 or n_fin == 0 or not fin_q.any():
+        return index, dist
+    all_fin = n_fin == pts.shape[0]
+    p_idx = None if all_fin else np.flatnonzero(fin_p)
+    tree = cKDTree(pts if all_fin else pts[fin_p], balanced_tree=False, compact_nodes=False)
+    kk = min(k, n_fin)
+    q_sel = qry if fin_q.all() else qry[fin_q]
+    d, i = tree.query(q_sel, k=kk, workers=workers, distance_upper_bound=upper)
+    d = np.asarray(d, dtype=np.float64).reshape(q_sel.shape[0], kk)
+    i = np.asarray(i, dtype=np.int64).reshape(q_sel.shape[0], kk)
+    missing = i >= n_fin
+    if p_idx is not None:
+        i = p_idx[np.minimum(i, n_fin - 1)]
+    i[missing] = -1
+    d[missing] = np.inf
+    if fin_q.all():
+        index[:, :kk] = i
+        dist[:, :kk] = d
+    else:
+        index[fin_q, :kk] = i
+        dist[fin_q, :kk] = d
+    return index, dist
+
+
+# --------------------------------------------------------------------------- public API
+
+
+def knn(points: Any, k: int, queries: Any = None, *, workers: int = -1) -> Neighbors:
+    """Find the k nearest neighbours with a k-d tree (``scipy.spatial.cKDTree``).
+
+    Parameters
+    ----------
+    points : (N, 3) float array or tensor
+        Searched points (any unit). Non-finite points are never returned as neighbours.
+    k : int
+        Neighbours per query, ``1 <= k``. When ``k`` exceeds the number of finite points the
+        rows are padded (``index = -1``, ``distance = inf``, ``mask = False``): the shape is
+        always ``(Q, k)`` and nothing is invented.
+    queries : (Q, 3) float array or tensor, optional
+        Query points. When None the queries are ``points`` themselves and column 0 of each
+        finite point's row is the point itself (distance 0), also among exact duplicates.
+    workers : int
+        Threads for the tree query (``-1``: all cores).
+
+    Returns
+    -------
+    Neighbors
+        ``index (Q, k)`` int64, ``distance (Q, k)`` float64, ``mask (Q, k)`` bool, nearest
+        first; the array type of ``points``. Non-finite queries get an all-padded row.
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, ``k < 1`` or a bad ``workers`` value.
+    TypeError
+        Non-numeric input or a non-integer ``k``.
+    """
+    pts, numpy_in, _ = _points_np(points, "points")
+    k = check_int(k, "k", low=1)
+    w = _workers(workers)
+    qry = pts if queries is None else _points_np(queries, "queries")[0]
+    index, dist = _tree_query(pts, qry, k, w)
+    if queries is None:
+        fin = np.isfinite(pts).all(axis=1)
+        rows = np.flatnonzero(fin)
+        if rows.size:
+            sub_i, sub_d = index[rows], dist[rows]
+            _put_self_first(sub_i, sub_d, rows)
+            index[rows], dist[rows] = sub_i, sub_d
+    mask = index >= 0
+    return Neighbors(_out(index, numpy_in), _out(dist, numpy_in), _out(mask, numpy_in))
+
+
+def radius_neighbors(
+    points: Any,
+    r: float,
+    queries: Any = None,
+    max_neighbors: int | None = None,
+    *,
+    workers: int = -1,
+) -> Neighbors:
+    """All neighbours within a ball of radius ``r`` (inclusive), padded to a rectangle.
+
+    Parameters
+    ----------
+    points : (N, 3) float array or tensor
+        Searched points. Non-finite points are never returned.
+    r : float
+        Ball radius, same unit as ``points``; ``r > 0``.
+    queries : (Q, 3) float array or tensor, optional
+        Query points; when None, ``points`` themselves with the point itself in column 0.
+    max_neighbors : int, optional
+        Keep only the ``max_neighbors`` nearest inside the ball (an explicit cap chosen by the
+        caller). When None the width is the largest ball count.
+    workers : int
+        Threads for the tree queries (``-1``: all cores).
+
+    Returns
+    -------
+    Neighbors
+        ``index (Q, Kmax)`` with ``-1`` padding, ``distance`` (``inf`` padding), ``mask``;
+        sorted nearest first.
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, ``r <= 0`` or ``max_neighbors < 1``.
+    TypeError
+        Non-numeric input.
+    """
+    pts, numpy_in, _ = _points_np(points, "points")
+    r = check_positive(r, "r")
+    w = _workers(workers)
+    qry = pts if queries is None else _points_np(queries, "queries")[0]
+    fin_p = np.isfinite(pts).all(axis=1)
+    fin_q = np.isfinite(qry).all(axis=1)
+    if max_neighbors is not None:
+        kmax = check_int(max_neighbors, "max_neighbors", low=1)
+    elif fin_p.any() and fin_q.any():
+        tree = cKDTree(pts[fin_p])
+        counts = tree.query_ball_point(qry[fin_q], r, workers=w, return_length=True)
+        kmax = int(np.max(counts)) if len(counts) else 0
+    else:
+        kmax = 0
+    kmax = max(kmax, 1) if qry.shape[0] else kmax
+    # a relative tolerance makes the ball inclusive of points at exactly distance r
+    upper = np.nextafter(r, np.inf) * (1 + 1e-12)
+    index, dist = _tree_query(pts, qry, kmax, w, upper=upper)
+    if queries is None:
+        rows = np.flatnonzero(fin_p)
+        if rows.size:
+            sub_i, sub_d = index[rows], dist[rows]
+            _put_self_first(sub_i, sub_d, rows)
+            index[rows], dist[rows] = sub_i, sub_d
+    mask = index >= 0
+    return Neighbors(_out(index, numpy_in), _out(dist, numpy_in), _out(mask, numpy_in))
+
+
+def _faces_np(faces: Any, n_vertices: int) -> tuple[np.ndarray, bool]:
+    numpy_in = is_numpy_like(faces)
+    t = as_tensor(faces, "faces", floating=False)
+    if t.is_floating_point() or t.dtype == torch.bool:
+        raise TypeError(f"faces: expected an integer array, got dtype {t.dtype}")
+    check_shape(t, "faces", ("F", 3))
+    f = t.detach().cpu().to(torch.int64).numpy()
+    if f.size and (f.min() < 0 or f.max() >= n_vertices):
+        raise ValueError(
+            f"faces: expected vertex indices in [0, {n_vertices - 1}], "
+            f"got values in [{f.min()}, {f.max()}]"
+        )
+    return f, numpy_in
+
+
+def vertex_adjacency(faces: Any, n_vertices: int) -> sp.csr_matrix:
+    """Symmetric vertex adjacency of a triangle mesh.
+
+    Parameters
+    ----------
+    faces : (F, 3) int array or tensor
+        Triangles as vertex indices in ``[0, n_vertices)``.
+    n_vertices : int
+        Number of vertices ``N`` (unreferenced vertices get empty rows).
+
+    Returns
+    -------
+    scipy.sparse.csr_matrix
+        ``(N, N)`` float64 matrix with 1 where two distinct vertices share an edge, zero
+        diagonal (degenerate faces add no self loops).
+
+    Raises
+    ------
+    ValueError
+        Bad shape or out-of-range indices.
+    TypeError
+        Non-integer faces.
+    """
+    n = check_int(n_vertices, "n_vertices", low=0)
+    f, _ = _faces_np(faces, n)
+    a = np.concatenate([f[:, 0], f[:, 1], f[:, 2]])
+    b = np.concatenate([f[:, 1], f[:, 2], f[:, 0]])
+    keep = a != b
+    a, b = a[keep], b[keep]
+    rows = np.concatenate([a, b])
+    cols = np.concatenate([b, a])
+    m = sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n))
+    m.sum_duplicates()
+    m.data[:] = 1.0
+    return m
+
+
+def mesh_k_ring(
+    faces: Any,
+    n_vertices: int,
+    k: int = 1,
+    *,
+    include_self: bool = True,
+    max_neighbors: int | None = None,
+) -> KRing:
+    """k-ring neighbourhoods of every vertex of a triangle mesh (breadth-first by hops).
+
+    Parameters
+    ----------
+    faces : (F, 3) int array or tensor
+        Triangles.
+    n_vertices : int
+        Number of vertices ``N``.
+    k : int
+        Ring radius in edges, ``k >= 1``.
+    include_self : bool
+        Put the vertex itself first (hop 0).
+    max_neighbors : int, optional
+        Keep at most this many entries per row (lowest hop counts first). When None the
+        width is the largest ring.
+
+    Returns
+    -------
+    KRing
+        ``index (N, K)``, ``hops (N, K)``, ``mask (N, K)``; NumPy unless ``faces`` is a
+        tensor.
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, out-of-range indices, ``k < 1``.
+    TypeError
+        Non-integer faces.
+    """
+    n = check_int(n_vertices, "n_vertices", low=0)
+    k = check_int(k, "k", low=1)
+    f, numpy_in = _faces_np(faces, n)
+    adj = vertex_adjacency(f, n)
+    step = (adj + sp.identity(n, format="csr")).tocsr()
+    reached = sp.identity(n, format="csr", dtype=np.float64)
+    hop = sp.identity(n, format="csr", dtype=np.float64)  # data = hop + 1
+    for h in range(1, k + 1):
+        nxt = (reached @ step).tocsr()
+        nxt.data[:] = 1.0
+        new = nxt - reached
+        new.eliminate_zeros()
+        if new.nnz == 0:
+            break
+        hop = hop + new * (h + 1)
+        reached = nxt
+    hop = hop.tocsr()
+    hop.sort_indices()
+    if not include_self:
+        hop = hop - sp.diags(hop.diagonal())
+        hop.eliminate_zeros()
+    hop = hop.tocsr()
+    counts = np.diff(hop.indptr)
+    row = np.repeat(np.arange(n), counts)
+    col = hop.indices.astype(np.int64)
+    hv = hop.data.astype(np.int64) - 1
+    order = np.lexsort((col, hv, row))
+    row, col, hv = row[order], col[order], hv[order]
+    pos = np.arange(row.size) - np.repeat(hop.indptr[:-1], counts)
+    width = int(counts.max()) if counts.size else 0
+    if max_neighbors is not None:
+        width = min(width, check_int(max_neighbors, "max_neighbors", low=1))
+    keep = pos < width
+    index = np.full((n, width), -1, dtype=np.int64)
+    hops = np.full((n, width), -1, dtype=np.int64)
+    index[row[keep], pos[keep]] = col[keep]
+    hops[row[keep], pos[keep]] = hv[keep]
+    mask = index >= 0
+    return KRing(_out(index, numpy_in), _out(hops, numpy_in), _out(mask, numpy_in))
