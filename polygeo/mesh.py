@@ -786,7 +786,8 @@ def vertex_normals(vertices: Any, faces: Any, weighting: str = "area") -> Vertex
         elif weighting == "uniform":
             w = fok.to(v.dtype)
         else:
-            w = _corner_angle(v, f, corner) * fok.to(v.dtype)
+            ang = _corner_angle(v, f, corner)
+            w = torch.where(fok, ang, torch.zeros_like(ang))
         contrib = fn * w[..., None]
         idx = f[:, corner]
         acc = acc.index_add(-2, idx, contrib)
