@@ -255,10 +255,14 @@ def monomial_derivatives(uv, order: int, du: int = 0, dv: int = 0) -> torch.Tens
 def _as_coeffs(coeffs, name: str = "coeffs") -> tuple[torch.Tensor, int]:
     c = as_tensor(coeffs, name)
     check_shape(c, name, ("B", "M"))
-    order = order_from_ncoeffs(c.shape[1]) if c.shape[1] > 0 else None
-    if order is None:
-        raise ValueError(f"{name}: expected shape (B, M) with M >= 1, got {tuple(c.shape)}")
-    return c, order
+    m = c.shape[1]
+    n = int(round((math.sqrt(8 * m + 1) - 3) / 2))
+    if m < 1 or (n + 1) * (n + 2) // 2 != m:
+        raise ValueError(f"{name}: expected shape (B, M) with M = (n+1)(n+2)/2 (1, 3, 6, 10, "
+                         f"15, ...), got {tuple(c.shape)}")
+    if n > _MAX_BASIS_ORDER:
+        raise ValueError(f"{name}: expected a jet order <= {_MAX_BASIS_ORDER}, got {n}")
+    return c, n
 
 
 def _as_eval_uv(uv, batch: int, name: str = "uv") -> torch.Tensor:
