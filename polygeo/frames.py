@@ -209,12 +209,17 @@ def quaternion_to_matrix(q) -> torch.Tensor:
 
 
 def _canonical(q: torch.Tensor) -> torch.Tensor:
-    """Pick the representative with w > 0, or the first non-zero of x, y, z positive."""
+    """Pick the representative with w > 0, or the first non-zero of x, y, z positive.
+
+    Components below 1e-12 of the largest count as zero.
+    """
     qd = q.detach()
     nz = qd.abs() > 1e-12 * qd.abs().amax(-1, keepdim=True).clamp_min(1e-300)
     first = torch.argmax(nz.to(torch.int8), dim=-1, keepdim=True)
     s = torch.gather(qd, -1, first)
-    return torch.where(s < 0, -q, q)
+    q = torch.where(s < 0, -q, q)
+    # a w below the tolerance (e.g. -6e-17 for a rotation by pi) is snapped to its magnitude
+    return torch.cat([q[..., :1].abs(), q[..., 1:]], -1).where(~nz[..., :1], q)
 
 
 def matrix_to_quaternion(R) -> torch.Tensor:

@@ -1,0 +1,240 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from polygeo import frames
+
+
+def _rand_quat(gen, n):
+    q = torch.randn(n, 4, generator=gen, dtype=torch.float64)
+    return q / q.norm(dim=-1, keepdim=True)
+
+
+def _is_rotation(R, tol=1e-12):
+    eye = torch.eye(3, dtype=R.dtype).expand_as(R)
+    return bool(((R.transpose(-1, -2) @ R - eye).abs().max() < tol)
+                and ((torch.linalg.det(R) - 1).abs().max() < tol))
+
+
+# ---------------------------------------------------------------- quaternions
+
+
+def test_quaternion_roundtrip_and_double_cover(gen):
+    q = _rand_quat(gen, 200)
+    R = frames.quaternion_to_matrix(q)
+    assert _is_rotation(R)
+    torch.testing.assert_close(frames.quaternion_to_matrix(-q), R)
+    back = frames.matrix_to_quaternion(R)
+    assert (back[:, 0] >= 0).all()
+    canon = torch.where(q[:, :1] < 0, -q, q)
+    torch.testing.assert_close(back, canon, rtol=0, atol=1e-12)
+    torch.testing.assert_close(back.norm(dim=-1), torch.ones(200, dtype=torch.float64))
+
+
+def test_matrix_to_quaternion_near_pi_and_identity():
+    # rotations by ~pi about each axis (trace ~ -1, where the naive formula breaks down)
+    aa = torch.tensor([[math.pi, 0, 0], [0, math.pi - 1e-9, 0], [0, 0, -math.pi],
+                       [1e-12, 0, 0], [0, 0, 0]], dtype=torch.float64)
+    R = frames.axis_angle_to_matrix(aa)
+    q = frames.matrix_to_quaternion(R)
+    torch.testing.assert_close(frames.quaternion_to_matrix(q), R, rtol=0, atol=1e-12)
+    assert (q[:, 0] >= 0).all()
+    # w == 0: first non-zero vector component positive
+    assert q[2, 3] > 0 and q[0, 1] > 0
+
+
+def test_quaternion_multiply_matches_matrix_product(gen):
+    a, b = _rand_quat(gen, 50), _rand_quat(gen, 50)
+    Rab = frames.quaternion_to_matrix(frames.quaternion_multiply(a, b))
+    torch.testing.assert_close(Rab, frames.quaternion_to_matrix(a) @ frames.quaternion_to_matrix(b))
+    ident = frames.quaternion_multiply(a, frames.quaternion_conjugate(a))
+    torch.testing.assert_close(ident, torch.tensor([1.0, 0, 0, 0]).double().expand(50, 4))
+
+
+def test_quaternion_apply_matches_matrix(gen):
+    q = _rand_quat(gen, 30)
+    v = torch.randn(30, 3, generator=gen, dtype=torch.float64)
+    torch.testing.assert_close(frames.quaternion_apply(q, v),
+                               (frames.quaternion_to_matrix(q) @ v[..., None])[..., 0])
+
+
+def test_axis_angle_matches_quaternion(gen):
+    axis = torch.randn(40, 3, generator=gen, dtype=torch.float64)
+    axis = axis / axis.norm(dim=-1, keepdim=True)
+    ang = torch.rand(40, generator=gen, dtype=torch.float64) * 3
+    ang[:3] = torch.tensor([0.0, 1e-7, 1e-3], dtype=torch.float64)
+    q = torch.cat([torch.cos(ang / 2)[:, None], torch.sin(ang / 2)[:, None] * axis], -1)
+    torch.testing.assert_close(frames.axis_angle_to_matrix(axis * ang[:, None]),
+                               frames.quaternion_to_matrix(q), rtol=0, atol=1e-13)
+
+
+def test_random_rotation_is_reproducible_and_uniform():
+    R1 = frames.random_rotation(2000, torch.Generator().manual_seed(3))
+    R2 = frames.random_rotation(2000, torch.Generator().manual_seed(3))
+    assert torch.equal(R1, R2) and _is_rotation(R1)
+    # Haar measure: E[R] = 0 and E[trace R] = 0, std of a matrix entry = 1/sqrt(3)
+    assert R1.mean(0).abs().max() < 0.06
+    assert abs(float(R1.diagonal(dim1=-2, dim2=-1).sum(-1).mean())) < 0.1
+    assert abs(float(R1[:, 0, 0].std()) - 1 / math.sqrt(3)) < 0.03
+
+
+def test_gradcheck_quaternion_conversions(gen):
+    q = _rand_quat(gen, 4).requires_grad_(True)
+    assert torch.autograd.gradcheck(frames.quaternion_to_matrix, (q,))
+    aa = (torch.randn(4, 3, generator=gen, dtype=torch.float64)).requires_grad_(True)
+    assert torch.autograd.gradcheck(frames.axis_angle_to_matrix, (aa,))
+    small = (1e-6 * torch.randn(2, 3, generator=gen, dtype=torch.float64)).requires_grad_(True)
+    assert torch.autograd.gradcheck(frames.axis_angle_to_matrix, (small,))
+
+    # matrix_to_quaternion on a rotation parametrised by axis-angle, covering all four branches
+    aa2 = torch.tensor([[0.3, -0.2, 0.1], [3.0, 0.1, 0.0], [0.0, 3.0, 0.1], [0.1, 0.0, 3.0]],
+                       dtype=torch.float64, requires_grad=True)
+
+    def f(a):
+        return frames.matrix_to_quaternion(frames.axis_angle_to_matrix(a))
+
+    assert torch.autograd.gradcheck(f, (aa2,))
+
+
+def test_quaternion_validators():
+    with pytest.raises(ValueError, match="q"):
+        frames.quaternion_to_matrix(torch.zeros(2, 4))
+    with pytest.raises(ValueError, match="q"):
+        frames.quaternion_to_matrix(torch.ones(2, 3))
+    with pytest.raises(ValueError, match="R"):
+        frames.matrix_to_quaternion(torch.eye(4))
+    with pytest.raises(ValueError, match="n"):
+        frames.random_rotation(-1)
+    with pytest.raises(ValueError, match="axis_angle"):
+        frames.axis_angle_to_matrix(torch.zeros(2, 4))
+    with pytest.raises(ValueError, match="v"):
+        frames.quaternion_apply(torch.ones(4), torch.ones(2))
+
+
+# ---------------------------------------------------------------- orientation
+
+
+def _orientation(gen, B):
+    return frames.Orientation(
+        torch.rand(B, generator=gen, dtype=torch.float64) + 0.5,
+        frames.random_rotation(B, gen),
+        torch.randn(B, 3, generator=gen, dtype=torch.float64),
+    )
+
+
+def test_orientation_identities(gen):
+    o, p = _orientation(gen, 5), _orientation(gen, 5)
+    x = torch.randn(5, 7, 3, generator=gen, dtype=torch.float64)
+    torch.testing.assert_close(o.inverse_apply(o.apply(x)), x)
+    torch.testing.assert_close(o.invert().apply(x), o.inverse_apply(x))
+    torch.testing.assert_close(o.compose(p).apply(x), o.apply(p.apply(x)))
+    torch.testing.assert_close(o.compose(o.invert()).apply(x), x)
+    ident = frames.Orientation.identity(5)
+    torch.testing.assert_close(ident.apply(x), x)
+    torch.testing.assert_close(o.compose(ident).apply(x), o.apply(x))
+    # vectors: rotation only, and differences of points transform like vectors times s
+    torch.testing.assert_close(o.apply(x)[:, 1:] - o.apply(x)[:, :1],
+                               o.s[:, None, None] * o.apply_vectors(x[:, 1:] - x[:, :1]))
+    # batch indexing and dtype
+    one = o[2]
+    assert len(one) == 1 and len(o[1:4]) == 3
+    torch.testing.assert_close(one.apply(x[2:3]), o.apply(x)[2:3])
+    assert o.to(torch.float32).R.dtype == torch.float32
+
+
+def test_orientation_create_validates():
+    with pytest.raises(ValueError, match="s"):
+        frames.Orientation.create(torch.tensor([1.0, -1.0]), torch.eye(3).expand(2, 3, 3),
+                                  torch.zeros(2, 3))
+    with pytest.raises(ValueError, match="R"):
+        frames.Orientation.create(torch.ones(2), torch.eye(3).expand(3, 3, 3), torch.zeros(2, 3))
+    with pytest.raises(ValueError, match="x"):
+        frames.Orientation.identity(2).apply(torch.zeros(3, 4, 3))
+    o = frames.Orientation.create(np.ones(2), np.eye(3)[None].repeat(2, 0), np.zeros((2, 3)))
+    assert o.R.dtype == torch.float64
+
+
+# ---------------------------------------------------------------- PCA frames
+
+
+def test_pca_frame_of_tilted_plane_recovers_normal(gen):
+    B, K = 20, 40
+    R = frames.random_rotation(B, gen)
+    uv = torch.randn(B, K, 2, generator=gen, dtype=torch.float64) * torch.tensor([2.0, 1.0])
+    local = torch.cat([uv, torch.zeros(B, K, 1, dtype=torch.float64)], -1)
+    offset = 1e6 * torch.randn(B, 1, 3, generator=gen, dtype=torch.float64)
+    pts = local @ R.transpose(-1, -2) + offset
+    f = frames.pca_frames(pts)
+    n_true = R[..., 2]
+    cosang = (f.rotation[..., 2] * n_true).sum(-1).abs()
+    assert (1 - cosang).max() < 1e-12
+    assert _is_rotation(f.rotation)
+    assert f.eigenvalues[:, 2].abs().max() < 1e-12 * f.eigenvalues[:, 0].max() + 1e-6
+    assert (f.eigenvalues[:, 0] >= f.eigenvalues[:, 1]).all()
+    # sign convention: largest component of e1 and e3 positive
+    for axis in (0, 2):
+        e = f.rotation[..., axis]
+        assert (e.gather(-1, e.abs().argmax(-1, keepdim=True)) > 0).all()
+    torch.testing.assert_close(f.centroid, pts.mean(1))
+
+
+def test_pca_frame_reference_normal_and_center(gen):
+    pts = torch.randn(3, 10, 3, generator=gen, dtype=torch.float64) * torch.tensor([1, 1, 0.01])
+    ref = torch.tensor([[0, 0, -1.0], [0, 0, 1.0], [0, 0, -1.0]], dtype=torch.float64)
+    f = frames.pca_frames(pts, reference_normal=ref)
+    assert ((f.rotation[..., 2] * ref).sum(-1) > 0).all()
+    assert _is_rotation(f.rotation)
+    c = torch.zeros(3, 3, dtype=torch.float64)
+    g = frames.pca_frames(pts, center=c)
+    torch.testing.assert_close(g.centroid, c)
+
+
+def test_pca_frame_mask_weights_and_degenerate(gen):
+    pts = torch.randn(4, 12, 3, generator=gen, dtype=torch.float64)
+    mask = torch.ones(4, 12, dtype=torch.bool)
+    mask[0, 6:] = False
+    pts_nan = pts.clone()
+    pts_nan[1, 3] = float("nan")
+    mask[1, 3] = False
+    a = frames.pca_frames(pts_nan, mask=mask)
+    for b, k in ((0, slice(0, 6)), (1, [i for i in range(12) if i != 3])):
+        one = frames.pca_frames(pts[b : b + 1, k])
+        torch.testing.assert_close(a.rotation[b], one.rotation[0])
+        torch.testing.assert_close(a.eigenvalues[b], one.eigenvalues[0])
+    # integer weights == duplicated points
+    w = torch.randint(1, 4, (12,), generator=gen)
+    wf = frames.pca_frames(pts[2:3], weights=w[None].double())
+    dup = frames.pca_frames(pts[2:3, torch.repeat_interleave(torch.arange(12), w)])
+    torch.testing.assert_close(wf.rotation, dup.rotation)
+    # degenerate: all points equal, and nothing valid -> identity frame, zero eigenvalues
+    same = torch.ones(2, 5, 3, dtype=torch.float64)
+    d = frames.pca_frames(same, mask=torch.tensor([[True] * 5, [False] * 5]))
+    torch.testing.assert_close(d.rotation, torch.eye(3, dtype=torch.float64).expand(2, 3, 3))
+    assert (d.eigenvalues == 0).all() and d.count.tolist() == [5, 0]
+    # collinear: e1 along the line
+    line = torch.linspace(-1, 1, 7, dtype=torch.float64)[:, None] * torch.tensor([1.0, 2, 2]) / 3
+    c = frames.pca_frames(line[None])
+    torch.testing.assert_close(c.rotation[0, :, 0], torch.tensor([1.0, 2, 2]).double() / 3)
+    assert _is_rotation(c.rotation)
+
+
+def test_pca_frames_numpy_and_batched(rng):
+    pts = rng.normal(size=(5, 9, 3))
+    f = frames.pca_frames(pts)
+    assert isinstance(f.rotation, np.ndarray)
+    for b in range(5):
+        one = frames.pca_frames(pts[b : b + 1])
+        np.testing.assert_allclose(f.rotation[b], one.rotation[0], atol=1e-12)
+
+
+def test_pca_frames_validators():
+    with pytest.raises(ValueError, match="points"):
+        frames.pca_frames(torch.zeros(2, 5, 2))
+    with pytest.raises(TypeError, match="mask"):
+        frames.pca_frames(torch.zeros(2, 5, 3), mask=torch.ones(2, 5))
+    with pytest.raises(ValueError, match="weights"):
+        frames.pca_frames(torch.zeros(2, 5, 3), weights=-torch.ones(2, 5))
+    with pytest.raises(ValueError, match="center"):
+        frames.pca_frames(torch.zeros(2, 5, 3), center=torch.zeros(3))
