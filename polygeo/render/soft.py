@@ -1,0 +1,520 @@
+"""Differentiable soft rasterization on the CPU (SoftRas-style), with numba kernels.
+
+For every pixel centre ``q`` and every face ``f`` whose projected triangle comes within the
+blur margin of ``q``:
+
+* coverage ``D_f = sigmoid(delta * d² / sigma)``, ``d`` the distance in pixels from ``q``
+  to the triangle's boundary, ``delta`` = +1 inside and -1 outside;
+* silhouette ``alpha = 1 - prod_f (1 - D_f)``;
+* colour: perspective-correct barycentrics (clamped to the triangle and renormalised
+  outside it) interpolate per-vertex colours or UVs (then a bilinear texture lookup), and
+  the colours are blended by the SoftRas softmax over normalised depth
+  ``zn = (zfar - z) / (zfar - znear)`` with weights ``D_f exp(zn_f / gamma)`` plus a
+  background term ``exp(background_depth / gamma)``.
+
+Faces are binned into screen tiles by their bounding boxes grown by the blur margin, so
+the work is proportional to the faces that reach each tile. The forward pass keeps only
+per-pixel aggregates; the backward pass recomputes the per-face terms (no per-pixel x
+per-face tensor is ever stored). Faces with any vertex closer than ``znear`` are culled
+(not clipped); faces with a projected area below ``min_area`` are skipped.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import numba
+import numpy as np
+import torch
+
+from .._validate import as_tensor, check_choice, check_finite, check_shape, is_numpy_like
+from . import _kernels as K
+from .camera import Camera
+from .settings import RasterSettings
+from .texture import _sample
+
+__all__ = ["RenderOutput", "render", "render_silhouette", "rasterize_faces"]
+
+
+class RenderOutput(NamedTuple):
+    """Result of :func:`render` (leading ``B`` only for batched input).
+
+    Attributes
+    ----------
+    rgb : array or torch.Tensor, shape ([B,] H, W, C)
+        Colour (same unit as the colours or texture), background where nothing is drawn.
+    alpha : array or torch.Tensor, shape ([B,] H, W)
+        Soft silhouette in [0, 1] (binary in hard mode).
+    depth : array or torch.Tensor, shape ([B,] H, W), optional
+        Camera depth of the nearest face whose triangle contains the pixel centre (scene
+        units), 0 where there is none. Differentiable w.r.t. vertex positions.
+    face_index : array or torch.Tensor, shape ([B,] H, W), int64, optional
+        Index of that face, -1 where there is none.
+    """
+
+    rgb: Any
+    alpha: Any
+    depth: Any = None
+    face_index: Any = None
+
+
+class _Config:
+    """Everything the kernels need besides tensors (kept on ``ctx``)."""
+
+    def __init__(self, settings: RasterSettings, H: int, W: int, mode: int, C: int):
+        self.s = settings
+        self.H = H
+        self.W = W
+        self.mode = mode
+        self.C = C
+        margin = settings.blur_margin
+        self.margin = margin
+        self.cutoff = margin * margin if np.isfinite(margin) else np.inf
+        # the kernels index the background only in colour modes; keep one value otherwise
+        self.bg = settings.background_for(C) if C else np.zeros(1)
+
+
+def _setup(fv_np: np.ndarray, s: RasterSettings, H: int, W: int, margin: float):
+    B, F = fv_np.shape[:2]
+    fd = np.zeros((B, F, K.NFD))
+    valid = np.zeros((B, F), dtype=np.uint8)
+    K.face_setup(fv_np, s.znear, 2.0 * s.min_area, bool(s.cull_backfaces), fd, valid)
+    bin_off, bin_f = K.bin_faces(fd, valid, H, W, s.tile_size, margin)
+    return fd, bin_off, bin_f
+
+
+def _np64(t: torch.Tensor | None, shape: tuple[int, ...]) -> np.ndarray:
+    if t is None:
+        return np.zeros(shape)
+    return np.ascontiguousarray(t.detach().cpu().to(torch.float64).numpy())
+
+
+class _SoftRasterize(torch.autograd.Function):
+    """Private autograd function: face vertices in screen space -> (alpha, rgb)."""
+
+    @staticmethod
+    def forward(ctx, fv, attr, uvs, tex, cfg):  # noqa: D102
+        s = cfg.s
+        fv_np = _np64(fv, ())
+        B = fv_np.shape[0]
+        H, W, C = cfg.H, cfg.W, cfg.C
+        fd, bin_off, bin_f = _setup(fv_np, s, H, W, cfg.margin)
+        attr_np = _np64(attr, (1, 1, 3, 1))
+        uvs_np = _np64(uvs, (1, 1, 3, 2))
+        tex_np = _np64(tex, (1, 1, 1))
+        P = np.empty((B, H, W))
+        if cfg.mode == K.MODE_SILHOUETTE:
+            m = Z = np.empty((1, 1, 1))
+            rgb = np.empty((1, 1, 1, 1))
+        else:
+            m = np.empty((B, H, W))
+            Z = np.empty((B, H, W))
+            rgb = np.empty((B, H, W, C))
+        K.soft_forward(
+            fd, bin_off, bin_f, H, W, s.tile_size, cfg.margin, cfg.cutoff, s.sigma,
+            1.0 / s.gamma, s.znear, s.zfar, s.background_depth, cfg.bg, cfg.mode,
+            attr_np, uvs_np, tex_np, P, m, Z, rgb,
+        )  # fmt: skip
+        ctx.cfg = cfg
+        ctx.arrays = (fd, bin_off, bin_f, attr_np, uvs_np, tex_np, P, m, Z, rgb)
+        ctx.shapes = (fv.shape, fv.dtype)
+        ctx.has = (attr is not None, uvs is not None, tex is not None)
+        dtype = fv.dtype
+        alpha = torch.from_numpy(1.0 - P).to(dtype)
+        if cfg.mode == K.MODE_SILHOUETTE:
+            out_rgb = torch.zeros((B, H, W, 0), dtype=dtype)
+        else:
+            out_rgb = torch.from_numpy(rgb).to(dtype)
+        return alpha, out_rgb
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_alpha, g_rgb):  # noqa: D102
+        cfg = ctx.cfg
+        s = cfg.s
+        fd, bin_off, bin_f, attr_np, uvs_np, tex_np, P, m, Z, rgb = ctx.arrays
+        fv_shape, dtype = ctx.shapes
+        B, F = fv_shape[0], fv_shape[1]
+        H, W, C = cfg.H, cfg.W, cfg.C
+        has_attr, has_uv, has_tex = ctx.has
+        need_attr = has_attr and ctx.needs_input_grad[1]
+        need_uv = has_uv and ctx.needs_input_grad[2]
+        need_tex = has_tex and ctx.needs_input_grad[3]
+        ga = _np64(g_alpha, (B, H, W)) if g_alpha is not None else np.zeros((B, H, W))
+        if cfg.mode == K.MODE_SILHOUETTE or g_rgb is None:
+            gr = np.zeros((B, H, W, max(C, 1)) if cfg.mode != K.MODE_SILHOUETTE else (1, 1, 1, 1))
+        else:
+            gr = _np64(g_rgb, ())
+        nch = max(1, min(numba.get_num_threads(), bin_off.shape[0] - 1))
+        g_fv = np.zeros((nch, B, F, 3, 3))
+        g_attr = np.zeros((nch, *attr_np.shape)) if need_attr else np.zeros((nch, 1, 1, 3, 1))
+        g_uv = np.zeros((nch, *uvs_np.shape)) if need_uv else np.zeros((nch, 1, 1, 3, 2))
+        g_tex = np.zeros((nch, *tex_np.shape)) if need_tex else np.zeros((nch, 1, 1, 1))
+        K.soft_backward(
+            fd, bin_off, bin_f, H, W, s.tile_size, cfg.margin, cfg.cutoff, s.sigma,
+            1.0 / s.gamma, s.znear, s.zfar, cfg.mode, attr_np, uvs_np, tex_np, P, m, Z, rgb,
+            ga, gr, need_attr, need_uv, need_tex, g_fv, g_attr, g_uv, g_tex,
+        )  # fmt: skip
+        out_fv = torch.from_numpy(g_fv.sum(0)).to(dtype) if ctx.needs_input_grad[0] else None
+        out_attr = torch.from_numpy(g_attr.sum(0)).to(dtype) if need_attr else None
+        out_uv = torch.from_numpy(g_uv.sum(0)).to(dtype) if need_uv else None
+        out_tex = torch.from_numpy(g_tex.sum(0)).to(dtype) if need_tex else None
+        return out_fv, out_attr, out_uv, out_tex, None
+
+
+# ---------------------------------------------------------------------------- helpers
+
+
+def _interp_at(
+    fv: torch.Tensor, idx: torch.Tensor, H: int, W: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Perspective-correct barycentrics and depth of face ``idx`` at every pixel centre.
+
+    ``fv`` (B, F, 3, 3), ``idx`` (B, H, W) with -1 for none. Returns ``mask`` (B, H, W) bool,
+    ``pb`` (B, H, W, 3) and ``depth`` (B, H, W) (0 and uniform weights where masked).
+    """
+    B = fv.shape[0]
+    mask = idx >= 0
+    safe = idx.clamp_min(0)
+    if fv.shape[1] == 0:
+        z = torch.zeros((B, H, W), dtype=fv.dtype)
+        return mask, torch.full((B, H, W, 3), 1.0 / 3.0, dtype=fv.dtype), z
+    bidx = torch.arange(B).view(B, 1, 1).expand(B, H, W)
+    pv = fv[bidx, safe]  # (B, H, W, 3, 3)
+    qy = (torch.arange(H, dtype=fv.dtype) + 0.5).view(1, H, 1)
+    qx = (torch.arange(W, dtype=fv.dtype) + 0.5).view(1, 1, W)
+    x = pv[..., 0] - qx.unsqueeze(-1)
+    y = pv[..., 1] - qy.unsqueeze(-1)
+    e0 = x[..., 1] * y[..., 2] - x[..., 2] * y[..., 1]
+    e1 = x[..., 2] * y[..., 0] - x[..., 0] * y[..., 2]
+    e2 = x[..., 0] * y[..., 1] - x[..., 1] * y[..., 0]
+    area = e0 + e1 + e2
+    area = torch.where(mask, area, torch.ones_like(area))
+    w = torch.stack([e0, e1, e2], dim=-1) / area.unsqueeze(-1)
+    w = w.clamp(0.0, 1.0)
+    w = w / w.sum(-1, keepdim=True).clamp_min(1e-300)
+    z = torch.where(mask.unsqueeze(-1), pv[..., 2], torch.ones_like(pv[..., 2]))
+    u = w / z
+    U = u.sum(-1)
+    pb = u / U.unsqueeze(-1)
+    depth = torch.where(mask, 1.0 / U, torch.zeros_like(U))
+    pb = torch.where(mask.unsqueeze(-1), pb, torch.full_like(pb, 1.0 / 3.0))
+    return mask, pb, depth
+
+
+def _nearest(fv: torch.Tensor, s: RasterSettings, H: int, W: int, margin: float) -> torch.Tensor:
+    fv_np = _np64(fv, ())
+    fd, bin_off, bin_f = _setup(fv_np, s, H, W, margin)
+    B = fv_np.shape[0]
+    idx = np.empty((B, H, W), dtype=np.int64)
+    depth = np.empty((B, H, W))
+    K.nearest_face(fd, bin_off, bin_f, H, W, s.tile_size, idx, depth)
+    return torch.from_numpy(idx)
+
+
+def _shade_hard(
+    pb: torch.Tensor,
+    idx: torch.Tensor,
+    mask: torch.Tensor,
+    attr: torch.Tensor | None,
+    uvs: torch.Tensor | None,
+    tex: torch.Tensor | None,
+    bg: torch.Tensor,
+) -> torch.Tensor:
+    B, H, W = idx.shape
+    safe = idx.clamp_min(0)
+    if attr is not None:
+        ab = torch.arange(B).view(B, 1, 1) if attr.shape[0] > 1 else torch.zeros(1, 1, 1).long()
+        if attr.shape[1] == 0:
+            col = bg.expand(B, H, W, -1)
+        else:
+            pa = attr[ab.expand(B, H, W), safe]  # (B, H, W, 3, C)
+            col = (pb.unsqueeze(-1) * pa).sum(-2)
+    else:
+        ub = torch.arange(B).view(B, 1, 1) if uvs.shape[0] > 1 else torch.zeros(1, 1, 1).long()
+        if uvs.shape[1] == 0:
+            col = bg.expand(B, H, W, -1)
+        else:
+            pu = uvs[ub.expand(B, H, W), safe]  # (B, H, W, 3, 2)
+            col = _sample(tex, (pb.unsqueeze(-1) * pu).sum(-2))
+    return torch.where(mask.unsqueeze(-1), col, bg.to(col.dtype))
+
+
+# ---------------------------------------------------------------------------- public API
+
+
+def _prepare(verts, faces, camera, settings, coords):
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected a polygeo.render.Camera, got {type(camera).__name__}")
+    s = RasterSettings() if settings is None else settings
+    if not isinstance(s, RasterSettings):
+        raise TypeError(f"settings: expected RasterSettings or None, got {type(s).__name__}")
+    check_choice(coords, "coords", ("world", "camera"))
+    v = as_tensor(verts, "verts")
+    check_shape(v, "verts", ("...", 3))
+    if v.ndim not in (2, 3):
+        raise ValueError(f"verts: expected shape (V, 3) or (B, V, 3), got {tuple(v.shape)}")
+    check_finite(v.detach(), "verts")
+    f = as_tensor(faces, "faces", floating=False)
+    if f.is_floating_point() or f.dtype == torch.bool:
+        raise TypeError(f"faces: expected an integer array, got dtype {f.dtype}")
+    check_shape(f, "faces", ("F", 3))
+    f = f.long()
+    nv = v.shape[-2]
+    if f.numel() and (int(f.min()) < 0 or int(f.max()) >= nv):
+        raise ValueError(
+            f"faces: expected vertex indices in [0, {nv - 1}], got values in "
+            f"[{int(f.min())}, {int(f.max())}]"
+        )
+    cb = camera.batch_size
+    vb = v.shape[0] if v.ndim == 3 else None
+    if cb is not None and vb is not None and cb != vb:
+        raise ValueError(f"verts: expected a batch of {cb} (the camera batch), got {vb}")
+    batched = cb is not None or vb is not None
+    B = cb if cb is not None else (vb if vb is not None else 1)
+    dtype = v.dtype
+    cam = camera.to(dtype) if camera.dtype != dtype else camera
+    vb3 = v if v.ndim == 3 else v.unsqueeze(0)
+    pc = (cam.world_to_camera(v) if cb is not None else cam.world_to_camera(vb3)) if (
+        coords == "world"
+    ) else vb3
+    if pc.ndim == 2:
+        pc = pc.unsqueeze(0)
+    pc = pc.expand(B, *pc.shape[-2:]) if pc.shape[0] != B else pc
+    z = pc[..., 2]
+    # vertices behind the near plane only belong to culled faces: keep their projection
+    # finite (and its gradient zero) by projecting a stand-in depth.
+    front = z >= s.znear
+    zs = torch.where(front, z, torch.ones_like(z))
+    pcs = torch.cat([pc[..., :2], zs.unsqueeze(-1)], dim=-1)
+    uv, _ = cam.project_camera(pcs)
+    screen = torch.cat([uv, z.unsqueeze(-1)], dim=-1)  # (B, V, 3): x, y pixels; z depth
+    fv = screen[:, f]  # (B, F, 3, 3)
+    return v, f, fv, cam, s, B, batched
+
+
+def _attributes(colors, uvs, texture, v, f, B, s):
+    if colors is not None and texture is not None:
+        raise ValueError("colors, texture: expected at most one of them, got both")
+    if texture is None and uvs is not None:
+        raise ValueError("uvs: given without a texture")
+    dtype = v.dtype
+    nv, nf = v.shape[-2], f.shape[0]
+    attr = uv_f = tex = None
+    if colors is not None:
+        c = as_tensor(colors, "colors", dtype=dtype)
+        if c.ndim == 2:
+            check_shape(c, "colors", (nv, "C"))
+            c = c.unsqueeze(0)
+        else:
+            check_shape(c, "colors", (B, nv, "C"))
+        check_finite(c.detach(), "colors")
+        attr = c[:, f]  # (Ba, F, 3, C)
+        C = c.shape[-1]
+        mode = K.MODE_VERTEX
+    elif texture is not None:
+        tex = as_tensor(texture, "texture", dtype=dtype)
+        check_shape(tex, "texture", ("Ht", "Wt", "C"))
+        if tex.numel() == 0:
+            raise ValueError(f"texture: expected a non-empty map, got shape {tuple(tex.shape)}")
+        check_finite(tex.detach(), "texture")
+        if uvs is None:
+            raise ValueError("uvs: expected (V, 2) or (F, 3, 2) UV coordinates with a texture")
+        u = as_tensor(uvs, "uvs", dtype=dtype)
+        if u.ndim == 2:
+            check_shape(u, "uvs", (nv, 2))
+            uv_f = u[f].unsqueeze(0)
+        else:
+            check_shape(u, "uvs", (nf, 3, 2))
+            uv_f = u.unsqueeze(0)
+        check_finite(u.detach(), "uvs")
+        C = tex.shape[-1]
+        mode = K.MODE_TEXTURE
+    else:
+        C = 0
+        mode = K.MODE_SILHOUETTE
+    if C:
+        s.background_for(C)  # validates the background's length
+    return attr, uv_f, tex, C, mode
+
+
+def _finish(t: torch.Tensor | None, batched: bool, like: bool):
+    if t is None:
+        return None
+    if not batched:
+        t = t[0]
+    return t.detach().cpu().numpy() if like else t
+
+
+def rasterize_faces(
+    face_verts: torch.Tensor,
+    height: int,
+    width: int,
+    settings: RasterSettings | None = None,
+    *,
+    face_colors: torch.Tensor | None = None,
+    face_uvs: torch.Tensor | None = None,
+    texture: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Low-level soft rasterization of screen-space triangles (torch only).
+
+    Parameters
+    ----------
+    face_verts : torch.Tensor, shape (B, F, 3, 3)
+        Per face and vertex ``(x, y, z)``: pixel coordinates and camera depth (scene units).
+    height, width : int
+        Image size in pixels.
+    settings : RasterSettings, optional
+        Defaults to ``RasterSettings()``. ``hard`` is ignored here.
+    face_colors : torch.Tensor, shape (B or 1, F, 3, C), optional
+        Per face-vertex colours.
+    face_uvs : torch.Tensor, shape (B or 1, F, 3, 2), optional
+        Per face-vertex UVs (with ``texture``).
+    texture : torch.Tensor, shape (Ht, Wt, C), optional
+
+    Returns
+    -------
+    alpha : torch.Tensor, shape (B, H, W)
+    rgb : torch.Tensor, shape (B, H, W, C) or None
+        None when neither colours nor a texture are given.
+
+    Raises
+    ------
+    ValueError
+        On inconsistent shapes.
+    """
+    s = RasterSettings() if settings is None else settings
+    check_shape(face_verts, "face_verts", ("B", "F", 3, 3))
+    if face_colors is not None:
+        mode, C = K.MODE_VERTEX, int(face_colors.shape[-1])
+        check_shape(face_colors, "face_colors", (None, face_verts.shape[1], 3, "C"))
+    elif texture is not None:
+        mode, C = K.MODE_TEXTURE, int(texture.shape[-1])
+        if face_uvs is None:
+            raise ValueError("face_uvs: expected (B, F, 3, 2) UVs with a texture, got None")
+        check_shape(face_uvs, "face_uvs", (None, face_verts.shape[1], 3, 2))
+        check_shape(texture, "texture", ("Ht", "Wt", "C"))
+    else:
+        mode, C = K.MODE_SILHOUETTE, 0
+    cfg = _Config(s, int(height), int(width), mode, C)
+    alpha, rgb = _SoftRasterize.apply(face_verts, face_colors, face_uvs, texture, cfg)
+    return alpha, (rgb if mode != K.MODE_SILHOUETTE else None)
+
+
+def render(
+    verts: Any,
+    faces: Any,
+    camera: Camera,
+    settings: RasterSettings | None = None,
+    *,
+    colors: Any = None,
+    uvs: Any = None,
+    texture: Any = None,
+    return_depth: bool = False,
+    return_face_index: bool = False,
+    coords: str = "world",
+) -> RenderOutput:
+    """Render a triangle mesh (or a batch of ``B`` meshes/frames) with soft rasterization.
+
+    Parameters
+    ----------
+    verts : array_like or torch.Tensor, shape (V, 3) or (B, V, 3)
+        Vertex positions (scene units) in world coordinates, or camera coordinates when
+        ``coords="camera"``. Must be finite.
+    faces : array_like or torch.Tensor, shape (F, 3), integer
+        Vertex indices of the triangles (shared by the batch). ``F = 0`` is allowed.
+    camera : Camera
+        Single or batched (``B`` cameras); image size ``(camera.height, camera.width)``.
+    settings : RasterSettings, optional
+        Defaults to ``RasterSettings()``.
+    colors : array_like or torch.Tensor, shape (V, C) or (B, V, C), optional
+        Per-vertex colours (any unit), interpolated perspective-correctly.
+    uvs : array_like or torch.Tensor, shape (V, 2) or (F, 3, 2), optional
+        Texture coordinates (see :mod:`polygeo.render.texture` for the convention), per
+        vertex or per face corner; required with ``texture``.
+    texture : array_like or torch.Tensor, shape (Ht, Wt, C), optional
+        Texture map, sampled bilinearly. Give ``colors`` or ``texture`` (not both); with
+        neither, ``rgb`` is an empty (..., 0) array (use :func:`render_silhouette`).
+    return_depth, return_face_index : bool
+        Also return the hard (z-buffer) depth and face index per pixel.
+    coords : {"world", "camera"}
+        Frame of ``verts``.
+
+    Returns
+    -------
+    RenderOutput
+        ``rgb`` ([B,] H, W, C), ``alpha`` ([B,] H, W), optionally ``depth`` and
+        ``face_index``; NumPy arrays when ``verts`` is a NumPy array, else tensors of the
+        dtype of ``verts``, differentiable w.r.t. ``verts``, ``colors``, ``uvs``,
+        ``texture`` and the camera's tensors.
+
+    Raises
+    ------
+    ValueError
+        On wrong shapes, non-finite values, out-of-range face indices, both ``colors`` and
+        ``texture``, ``uvs`` without ``texture`` (or the reverse), or a background colour
+        whose length does not match ``C``.
+    TypeError
+        On a camera that is not a :class:`Camera`, settings that are not
+        :class:`RasterSettings` or non-integer faces.
+    """
+    like = is_numpy_like(verts)
+    v, f, fv, cam, s, B, batched = _prepare(verts, faces, camera, settings, coords)
+    attr, uv_f, tex, C, mode = _attributes(colors, uvs, texture, v, f, B, s)
+    H, W = cam.height, cam.width
+    depth = idx = None
+    if s.hard:
+        idx = _nearest(fv, s, H, W, 0.0)
+        mask, pb, dep = _interp_at(fv, idx, H, W)
+        alpha = mask.to(v.dtype)
+        if mode == K.MODE_SILHOUETTE:
+            rgb = torch.zeros((B, H, W, 0), dtype=v.dtype)
+        else:
+            bg = torch.as_tensor(s.background_for(C), dtype=v.dtype)
+            rgb = _shade_hard(pb, idx, mask, attr, uv_f, tex, bg)
+        depth = dep if return_depth else None
+    else:
+        cfg = _Config(s, H, W, mode, C)
+        alpha, rgb = _SoftRasterize.apply(fv, attr, uv_f, tex, cfg)
+        if return_depth or return_face_index:
+            idx = _nearest(fv, s, H, W, 0.0)
+            if return_depth:
+                depth = _interp_at(fv, idx, H, W)[2]
+    return RenderOutput(
+        rgb=_finish(rgb, batched, like),
+        alpha=_finish(alpha, batched, like),
+        depth=_finish(depth, batched, like),
+        face_index=_finish(idx, batched, like) if return_face_index else None,
+    )
+
+
+def render_silhouette(
+    verts: Any,
+    faces: Any,
+    camera: Camera,
+    settings: RasterSettings | None = None,
+    *,
+    coords: str = "world",
+) -> Any:
+    """Soft silhouette ``alpha = 1 - prod_f (1 - D_f)`` of a mesh (or a batch).
+
+    Parameters
+    ----------
+    verts : array_like or torch.Tensor, shape (V, 3) or (B, V, 3)
+        Vertex positions (scene units), world or camera coordinates (``coords``).
+    faces : array_like or torch.Tensor, shape (F, 3), integer
+    camera : Camera
+    settings : RasterSettings, optional
+    coords : {"world", "camera"}
+
+    Returns
+    -------
+    array or torch.Tensor, shape ([B,] H, W)
+        Coverage in [0, 1]; binary in hard mode. Type of ``verts``.
+
+    Raises
+    ------
+    ValueError, TypeError
+        As :func:`render`.
+    """
+    return render(verts, faces, camera, settings, coords=coords).alpha
