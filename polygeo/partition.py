@@ -26,6 +26,7 @@ Conventions
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -426,7 +427,10 @@ def partition_mesh(
     if k_acvd == 1:
         lab_local = np.zeros(len(used_idx), np.int64)
     else:
-        lab_local = np.asarray(pyacvd.Clustering(poly).cluster(k_acvd, maxiter=maxiter), np.int64)
+        with warnings.catch_warnings():  # pyacvd uses a deprecated pyvista accessor
+            warnings.simplefilter("ignore")
+            clus = pyacvd.Clustering(poly)
+            lab_local = np.asarray(clus.cluster(k_acvd, maxiter=maxiter), np.int64)
     labels = np.full(len(v), -1, np.int64)
     labels[used_idx] = lab_local
     if (labels[used] < 0).any():  # ACVD left a vertex unassigned: give it its own cluster

@@ -518,7 +518,8 @@ class PatchSet:
     faces : torch.Tensor or None
         ``(F, 3)`` int64 input triangles (None for a point cloud).
     normals : torch.Tensor or None
-        ``(V, 3)`` input unit normals (vertex normals of the mesh or given normals).
+        ``(V, 3)`` input normals given to :meth:`fit` (None: the mesh's vertex normals are
+        used where needed, see :meth:`reference_normals`).
     boundary_pairs : torch.Tensor
         ``(E_b, 2)`` int64 input edges whose ends lie in different patches.
     orient : str
@@ -611,8 +612,9 @@ class PatchSet:
         orient : {"pca", "stn", "optimize"}
             Canonicalisation (see :mod:`polygeo.stn`).
         normals : array_like, optional
-            ``(V, 3)`` input normals (default: area-weighted vertex normals of the mesh;
-            None for a point cloud). They orient the patch frames and score normal errors.
+            ``(V, 3)`` input normals. They orient the patch frames (default: the faces' area
+            vectors; PCA's sign convention for a point cloud) and score normal errors
+            (default: the mesh's vertex normals).
         target_rmse : float, optional
             Choose K from an error target instead of a count: K grows (from ``n_patches`` or
             16) until the RMS height residual over all points is at most ``target_rmse``
@@ -659,16 +661,11 @@ class PatchSet:
         if V == 0:
             raise ValueError("points: expected at least one point, got shape (0, 3)")
         f = None if faces is None else torch.from_numpy(_faces_np(faces, V))
+        nrm = None
         if normals is not None:
             nrm = as_tensor(normals, "normals").detach().to(torch.float64)
             check_shape(nrm, "normals", (V, 3))
             check_finite(nrm, "normals")
-        elif f is not None:
-            from .mesh import vertex_normals
-
-            nrm = vertex_normals(v, f).normals.to(torch.float64)
-        else:
-            nrm = None
         if partition is not None and len(partition.labels) != V:
             raise ValueError(
                 f"partition: expected labels for {V} vertices, got {len(partition.labels)}"
@@ -733,8 +730,12 @@ class PatchSet:
         pts = v[index.clamp_min(0)]  # (K, P, 3)
         ref = None
         if nrm is not None:
-            nsum = torch.zeros(K, 3, dtype=torch.float64).index_add_(0, labels, nrm)
-            ref = torch.where(nsum.norm(dim=-1, keepdim=True) > 0, nsum, torch.zeros_like(nsum))
+            ref = torch.zeros(K, 3, dtype=torch.float64).index_add_(0, labels, nrm)
+        elif f is not None and len(f):
+            # area vectors of the faces, summed per patch (of the first corner)
+            pf = v[f]
+            cr = torch.linalg.cross(pf[:, 1] - pf[:, 0], pf[:, 2] - pf[:, 0])
+            ref = torch.zeros(K, 3, dtype=torch.float64).index_add_(0, labels[f[:, 0]], cr)
         can = stn.canonicalize(pts, mask, reference_normal=ref)
         local, ori = can.local, can.orientation
         res_order = 4 if isinstance(order, str) else int(order)
@@ -877,6 +878,20 @@ class PatchSet:
         loc = (d[:, None, :] @ self.rotation[idx])[:, 0] / self.scale[idx, None]
         return loc[:, :2]
 
+    def reference_normals(self) -> torch.Tensor | None:
+        """Input normals ``(V, 3)`` used for the normal error, or None.
+
+        The normals given to :meth:`fit`, else the mesh's area-weighted vertex normals, else
+        None (a point cloud without normals).
+        """
+        if self.normals is not None:
+            return self.normals
+        if self.faces is None:
+            return None
+        from .mesh import vertex_normals
+
+        return vertex_normals(self.vertices, self.faces).normals.to(torch.float64)
+
     def _vertex_uv(self) -> torch.Tensor:
         """Canonical uv of every input vertex in its own patch, ``(V, 2)``."""
         out = torch.zeros(self.vertices.shape[0], 2, dtype=self.uv.dtype)
@@ -988,12 +1003,13 @@ class PatchSet:
             rmse = (self.residual * self.scale).cpu().numpy()
             vuv = self._vertex_uv()
             nerr = None
-            if self.normals is not None:
+            ref_normals = self.reference_normals()
+            if ref_normals is not None:
                 g = patch_geometry(
                     self.coeffs, self.scale, self.rotation, self.translation, self.labels, vuv
                 ).geometry
-                ang = _angle_deg(g.normal, self.normals)
-                ok = self.normals.norm(dim=-1) > 0
+                ang = _angle_deg(g.normal, ref_normals)
+                ok = ref_normals.norm(dim=-1) > 0
                 s = torch.zeros(K, dtype=torch.float64).index_add_(0, self.labels[ok], ang[ok])
                 c = torch.bincount(self.labels[ok], minlength=K).clamp_min(1)
                 nerr = (s / c).cpu().numpy()
