@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 from ._validate import as_tensor, check_int, check_positive, check_shape, is_numpy_like
 
 __all__ = [
+    "PointIndex",
     "Neighbors",
     "KRing",
     "knn",
@@ -119,42 +120,90 @@ def _put_self_first(index: np.ndarray, dist: np.ndarray, self_idx: np.ndarray) -
     dist[r] = new_dist
 
 
+class PointIndex:
+    """A k-d tree over the finite points of a cloud, queried many times (e.g. in chunks).
+
+    Parameters
+    ----------
+    points : (N, 3) float64 ndarray
+        Coordinates; non-finite rows are left out of the tree and never returned.
+
+    Notes
+    -----
+    This is the reusable engine behind :func:`knn` and :func:`radius_neighbors`; it works on
+    NumPy float64 arrays only (no validation, no type conversion).
+    """
+
+    def __init__(self, points: np.ndarray) -> None:
+        self.points = points
+        fin = np.isfinite(points).all(axis=1)
+        self.n_finite = int(fin.sum())
+        self._all_finite = self.n_finite == points.shape[0]
+        self._map = None if self._all_finite else np.flatnonzero(fin)
+        data = points if self._all_finite else points[fin]
+        self.tree = (
+            cKDTree(data, balanced_tree=False, compact_nodes=False) if self.n_finite else None
+        )
+
+    def query(
+        self,
+        queries: np.ndarray,
+        k: int,
+        *,
+        workers: int = -1,
+        upper: float = np.inf,
+        self_index: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Return ``(index (Q, k) int64, distance (Q, k) float64)``, padded with -1 / inf.
+
+        ``self_index`` (Q,) gives, for queries that are points of the cloud, their own index:
+        it is then put in column 0 (ties among exact duplicates resolved in its favour).
+        """
+        qn = queries.shape[0]
+        index = np.full((qn, k), -1, dtype=np.int64)
+        dist = np.full((qn, k), np.inf, dtype=np.float64)
+        if k == 0 or self.tree is None or qn == 0:
+            return index, dist
+        fin_q = np.isfinite(queries).all(axis=1)
+        if not fin_q.any():
+            return index, dist
+        kk = min(k, self.n_finite)
+        all_q = bool(fin_q.all())
+        q_sel = queries if all_q else queries[fin_q]
+        d, i = self.tree.query(q_sel, k=kk, workers=workers, distance_upper_bound=upper)
+        d = np.asarray(d, dtype=np.float64).reshape(q_sel.shape[0], kk)
+        i = np.asarray(i, dtype=np.int64).reshape(q_sel.shape[0], kk)
+        missing = i >= self.n_finite
+        if self._map is not None:
+            i = self._map[np.minimum(i, self.n_finite - 1)]
+        i[missing] = -1
+        d[missing] = np.inf
+        if all_q:
+            index[:, :kk] = i
+            dist[:, :kk] = d
+        else:
+            index[fin_q, :kk] = i
+            dist[fin_q, :kk] = d
+        if self_index is not None:
+            rows = np.flatnonzero(fin_q)
+            if rows.size:
+                sub_i, sub_d = index[rows], dist[rows]
+                _put_self_first(sub_i, sub_d, np.asarray(self_index, dtype=np.int64)[rows])
+                index[rows], dist[rows] = sub_i, sub_d
+        return index, dist
+
+
 def _tree_query(
     pts: np.ndarray,
     qry: np.ndarray,
     k: int,
     workers: int,
     upper: float = np.inf,
+    self_first: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """k-NN of finite queries among finite points; pads with -1 / inf."""
-    fin_p = np.isfinite(pts).all(axis=1)
-    fin_q = np.isfinite(qry).all(axis=1)
-    q_count = qry.shape[0]
-    index = np.full((q_count, k), -1, dtype=np.int64)
-    dist = np.full((q_count, k), np.inf, dtype=np.float64)
-    n_fin = int(fin_p.sum())
-    if k == 0 or n_fin == 0 or not fin_q.any():
-        return index, dist
-    all_fin = n_fin == pts.shape[0]
-    p_idx = None if all_fin else np.flatnonzero(fin_p)
-    tree = cKDTree(pts if all_fin else pts[fin_p], balanced_tree=False, compact_nodes=False)
-    kk = min(k, n_fin)
-    q_sel = qry if fin_q.all() else qry[fin_q]
-    d, i = tree.query(q_sel, k=kk, workers=workers, distance_upper_bound=upper)
-    d = np.asarray(d, dtype=np.float64).reshape(q_sel.shape[0], kk)
-    i = np.asarray(i, dtype=np.int64).reshape(q_sel.shape[0], kk)
-    missing = i >= n_fin
-    if p_idx is not None:
-        i = p_idx[np.minimum(i, n_fin - 1)]
-    i[missing] = -1
-    d[missing] = np.inf
-    if fin_q.all():
-        index[:, :kk] = i
-        dist[:, :kk] = d
-    else:
-        index[fin_q, :kk] = i
-        dist[fin_q, :kk] = d
-    return index, dist
+    self_index = np.arange(qry.shape[0]) if self_first else None
+    return PointIndex(pts).query(qry, k, workers=workers, upper=upper, self_index=self_index)
 
 
 # --------------------------------------------------------------------------- public API
@@ -194,14 +243,7 @@ def knn(points: Any, k: int, queries: Any = None, *, workers: int = -1) -> Neigh
     k = check_int(k, "k", low=1)
     w = _workers(workers)
     qry = pts if queries is None else _points_np(queries, "queries")[0]
-    index, dist = _tree_query(pts, qry, k, w)
-    if queries is None:
-        fin = np.isfinite(pts).all(axis=1)
-        rows = np.flatnonzero(fin)
-        if rows.size:
-            sub_i, sub_d = index[rows], dist[rows]
-            _put_self_first(sub_i, sub_d, rows)
-            index[rows], dist[rows] = sub_i, sub_d
+    index, dist = _tree_query(pts, qry, k, w, self_first=queries is None)
     mask = index >= 0
     return Neighbors(_out(index, numpy_in), _out(dist, numpy_in), _out(mask, numpy_in))
 
@@ -260,13 +302,7 @@ def radius_neighbors(
     kmax = max(kmax, 1) if qry.shape[0] else kmax
     # a relative tolerance makes the ball inclusive of points at exactly distance r
     upper = np.nextafter(r, np.inf) * (1 + 1e-12)
-    index, dist = _tree_query(pts, qry, kmax, w, upper=upper)
-    if queries is None:
-        rows = np.flatnonzero(fin_p)
-        if rows.size:
-            sub_i, sub_d = index[rows], dist[rows]
-            _put_self_first(sub_i, sub_d, rows)
-            index[rows], dist[rows] = sub_i, sub_d
+    index, dist = _tree_query(pts, qry, kmax, w, upper=upper, self_first=queries is None)
     mask = index >= 0
     return Neighbors(_out(index, numpy_in), _out(dist, numpy_in), _out(mask, numpy_in))
 

@@ -11,7 +11,9 @@ the order the estimator tries them:
    after Hoppe et al. (1992): a minimum spanning tree on weights ``1 - |n_i . n_j|`` so
    that the sign travels across nearly parallel normals first, seeded per connected
    component at its point of largest ``z`` (the extreme point of a closed surface, whose
-   outward normal has ``n_z > 0``), whose normal is made to point to ``+z``.
+   outward normal has ``n_z > 0``), whose normal is made to point to ``+z``. (Generalised:
+   of the six extreme points along +-x, +-y, +-z the one whose normal is most aligned with
+   its axis is the seed, so an open cylinder along ``z`` is seeded on its side.)
 
 Functions accept NumPy or torch and return the input's type. Orientation is a sign choice
 per point: it is applied with a multiplication by +-1, so gradients pass through.
@@ -150,6 +152,17 @@ def mesh_reference_normals(vertices: Any, faces: Any) -> tuple[Any, Any]:
     return to_like(vn.normals, numpy_in), to_like(valid, numpy_in)
 
 
+def _group_argmax(key: np.ndarray, comp: np.ndarray, ncomp: int) -> np.ndarray:
+    """Index of the largest ``key`` in each component (first one on ties), per component."""
+    if ncomp == 1:
+        return np.array([int(np.argmax(key))])
+    mx = np.full(ncomp, -np.inf)
+    np.maximum.at(mx, comp, key)
+    hit = np.flatnonzero(key == mx[comp])
+    _, first = np.unique(comp[hit], return_index=True)
+    return hit[first]
+
+
 def _parity_to_root(pred: np.ndarray, neg: np.ndarray) -> np.ndarray:
     """XOR of ``neg`` along each node's path to its tree root (pointer jumping, O(N log D))."""
     par = neg.copy()
@@ -192,8 +205,9 @@ def propagate_orientation(
     -------
     Oriented
         Normals, signs, and the connected component of each point in the graph. In each
-        component the normal of the point with the largest ``z`` points to ``+z`` (outward on
-        a closed surface) and every other normal agrees with its parent in the minimum
+        component the normal at the seed (the extreme point along one of +-x, +-y, +-z whose
+        normal is best aligned with that axis) points along that axis (outward on a closed
+        surface) and every other normal agrees with its parent in the minimum
         spanning tree of weights ``1 - |n_i . n_j|``.
 
     Raises
@@ -234,16 +248,24 @@ def propagate_orientation(
         rows, cols = rows[keep], cols[keep]
         w = 1.0 - np.abs(np.einsum("ij,ij->i", nn[rows], nn[cols])) + 1e-9
         g = sp.coo_matrix((w, (rows, cols)), shape=(npts, npts)).tocsr()
-        g = g.maximum(g.T)
         ncomp, comp = connected_components(g, directed=False)
-        tree = minimum_spanning_tree(g)
+        tree = minimum_spanning_tree(g)  # treats the directed k-NN edges as undirected
         tree = tree.maximum(tree.T)
-        z = np.where(ok, pn[:, 2], -np.inf)
-        # seed of each component: its point of largest z
-        order = np.lexsort((-z, comp))
-        first = np.ones(order.size, dtype=bool)
-        first[1:] = comp[order][1:] != comp[order][:-1]
-        seeds = order[first]
+        # seed of each component: among its extreme points along +-x, +-y, +-z, the one whose
+        # normal is most aligned with that axis (an outward normal there points along it)
+        best_score = np.full(ncomp, -1.0)
+        seeds = np.zeros(ncomp, dtype=np.int64)
+        seed_dir = np.zeros((ncomp, 3))
+        for axis in range(3):
+            for sgn in (1.0, -1.0):
+                cand = _group_argmax(np.where(ok, sgn * pn[:, axis], -np.inf), comp, ncomp)
+                score = np.abs(nn[cand, axis])
+                better = score > best_score[comp[cand]] + 1e-12
+                cc = comp[cand][better]
+                best_score[cc] = score[better]
+                seeds[cc] = cand[better]
+                seed_dir[cc] = 0.0
+                seed_dir[cc, axis] = sgn
         # one breadth-first pass from a virtual root linked to every seed
         seeds_ok = seeds[ok[seeds]]
         root = npts
@@ -259,8 +281,7 @@ def propagate_orientation(
         neg = np.zeros(npts, dtype=bool)
         neg[has] = np.einsum("ij,ij->i", nn[has], nn[pred[has]]) < 0
         parity = _parity_to_root(pred, neg)
-        seed_flip = np.zeros(ncomp, dtype=bool)
-        seed_flip[comp[seeds]] = nn[seeds, 2] < 0
+        seed_flip = np.einsum("ij,ij->i", nn[seeds], seed_dir) < 0
         flip = parity ^ seed_flip[comp]
         flip &= ok
         sign = np.where(flip, -1.0, 1.0)

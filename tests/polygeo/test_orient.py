@@ -63,7 +63,7 @@ def test_propagation_open_cylinder_is_consistent(rng):
     n = np.stack([np.cos(t), np.sin(t), 0 * t], 1)
     out = orient.propagate_orientation(p, n * random_signs(2000, rng), k=10)
     d = np.einsum("ij,ij->i", out.normals, n)
-    assert (d > 0).all() or (d < 0).all()
+    assert (d > 0).all()  # seeded on the side, where the outward normal is axis-aligned
 
 
 def test_propagation_with_given_neighbors_and_torch_gradient(rng):

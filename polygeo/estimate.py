@@ -1,0 +1,1008 @@
+"""Per-point differential quantities of a point cloud or a mesh: the one obvious call.
+
+>>> import numpy as np, polygeo
+>>> pts = np.random.default_rng(0).normal(size=(2000, 3))
+>>> pts /= np.linalg.norm(pts, axis=1, keepdims=True)          # unit sphere
+>>> dq = polygeo.differential_quantities(pts, k=20, order=2)
+>>> float(np.median(dq.mean_curvature))                        # outward normals: H = -1/r
+-1.0...
+
+Pipeline (per point ``p``): neighbourhood (k nearest neighbours including ``p``, a radius
+ball, or a mesh k-ring) -> coordinates relative to ``p`` in float64 *before anything else*
+(so a cloud shifted by 1e8 loses nothing) -> exact duplicates of a neighbour dropped -> PCA
+frame -> height coordinates ``(u, v, z)`` -> n-jet least-squares fit (Cazals & Pouget 2005,
+:func:`polygeo.jets.fit`, rank-deficient items fall back to a lower order) -> normal, second
+fundamental form, principal curvatures and directions at ``p`` (``(u, v) = 0``, as
+:func:`polygeo.diffgeo.from_jet`) -> world frame -> consistent orientation -> curvature signs
+follow the final normals.
+
+Sign convention (project-wide, :mod:`polygeo.diffgeo`): curvature is positive where the
+surface bends towards the normal; with outward normals a sphere of radius ``r`` has
+``k1 = k2 = H = -1/r`` and ``K = 1/r^2``. ``k1 >= k2`` and ``(d1, d2, n)`` is right-handed.
+
+Orientation (``orient="auto"``): input normals if given, else the mesh's faces (re-wound
+consistently, outward for closed components), else propagation over the k-NN graph (minimum
+spanning tree, seeded outward at the highest point of each component). Points a reference
+cannot decide (no normal, unreferenced vertex) get the sign of their propagation component.
+
+Status codes (:class:`polygeo.status.Status`): ``NONFINITE_INPUT`` (the point itself is
+NaN/inf: its outputs are NaN and no other point uses it), ``TOO_FEW_POINTS`` (fewer distinct
+neighbours than coefficients), ``ORDER_REDUCED`` (degenerate neighbourhood, e.g. a single
+scan line or ring: fitted at a lower order), ``DEGENERATE`` (not even a plane could be
+fitted: normal from PCA only, curvatures 0), ``ILL_CONDITIONED``. Values of flagged points
+are finite fallbacks, never NaN (except ``NONFINITE_INPUT``).
+
+Two execution paths compute the same quantities: a compiled one (numba, used when no gradient
+is needed) and a torch one (differentiable with respect to the points, used when ``points``
+is a tensor requiring grad, or with ``backend="torch"``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, fields
+from typing import Any
+
+import numba as nb
+import numpy as np
+import torch
+
+from . import jets
+from ._validate import as_tensor, check_choice, check_int, check_positive, check_shape
+from .neighbors import PointIndex, mesh_k_ring
+from .status import Status
+
+__all__ = ["DifferentialQuantities", "differential_quantities", "AUTO_K_CANDIDATES"]
+
+#: Neighbourhood sizes tried by ``k="auto"`` (capped by the number of points).
+AUTO_K_CANDIDATES = (12, 24, 48, 96, 192, 384)
+#: Jet orders tried by ``order="auto"``.
+AUTO_ORDERS = (2, 3, 4)
+
+
+@dataclass(frozen=True)
+class DifferentialQuantities:
+    """Per-point differential quantities (NumPy arrays for NumPy input, else torch tensors).
+
+    Attributes
+    ----------
+    points : (N, 3)
+        The input points (unchanged).
+    normals : (N, 3)
+        Oriented unit normals.
+    k1, k2 : (N,)
+        Principal curvatures, ``k1 >= k2`` (1 / length unit), signs following ``normals``.
+    d1, d2 : (N, 3)
+        Unit principal directions (``d2 = normals x d1``).
+    mean_curvature, gaussian_curvature : (N,)
+        ``H = (k1 + k2) / 2`` and ``K = k1 k2``.
+    status : (N,) int64
+        :class:`polygeo.status.Status` codes (0 = reliable).
+    order : (N,) int64
+        Jet order actually fitted per point (the requested one unless reduced or automatic).
+    n_neighbors : (N,) int64
+        Distinct neighbours used (the point itself included).
+    residual : (N,)
+        RMS height residual of the fit (length unit): a local noise estimate.
+    frame : (N, 3, 3)
+        Local fitting frames (columns ``e1, e2, e3``), world = ``frame @ (u, v, z) + point``,
+        with ``e3`` on the side of the final normal.
+    coeffs : (N, M)
+        Jet coefficients in ``frame`` (:mod:`polygeo.jets` order, ``M`` of the largest
+        order fitted; zeros above a point's own order).
+    metric, second_form : (N, 2, 2) or None
+        First and second fundamental forms of the jet at the point in the ``(u, v)``
+        parametrisation of ``frame`` (when ``forms=True``).
+    monge : dict or None
+        When ``monge=True``: ``origin (N, 3)`` (the jet's point above ``p``), ``b (N, 4)``,
+        ``c (N, 5)``: third and fourth order Monge coefficients in the oriented Monge frame
+        ``(d1, d2, normals)`` (CGAL convention; zeros below order 3 / 4).
+    """
+
+    points: Any
+    normals: Any
+    k1: Any
+    k2: Any
+    d1: Any
+    d2: Any
+    mean_curvature: Any
+    gaussian_curvature: Any
+    status: Any
+    order: Any
+    n_neighbors: Any
+    residual: Any
+    frame: Any
+    coeffs: Any
+    metric: Any = None
+    second_form: Any = None
+    monge: Any = None
+
+    def __len__(self) -> int:
+        return int(self.status.shape[0])
+
+    def summary(self) -> dict[str, Any]:
+        """Counts per status and ranges of the curvatures of OK points (plain Python)."""
+        st = np.asarray(_np(self.status))
+        out: dict[str, Any] = {"n_points": int(st.size)}
+        out["status"] = {Status(int(c)).name: int((st == c).sum()) for c in np.unique(st)}
+        ok = st == 0
+        for name in ("k1", "k2", "mean_curvature", "gaussian_curvature"):
+            v = np.asarray(_np(getattr(self, name)))[ok]
+            out[name] = (
+                (float(np.min(v)), float(np.median(v)), float(np.max(v))) if v.size else None
+            )
+        return out
+
+
+def _np(x: Any) -> Any:
+    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else x
+
+
+# ----------------------------------------------------------------------------- kernels
+
+
+@nb.njit(cache=True, inline="always")
+def _jacobi3(a, v):
+    """Eigen-decompose the symmetric 3x3 ``a`` in place (cyclic Jacobi); columns of ``v``."""
+    for r in range(3):
+        for c in range(3):
+            v[r, c] = 1.0 if r == c else 0.0
+    for _sweep in range(30):
+        off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+        diag = a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]
+        if off <= 1e-34 * diag or off == 0.0:
+            break
+        for p in range(2):
+            for q in range(p + 1, 3):
+                apq = a[p, q]
+                if apq == 0.0:
+                    continue
+                theta = (a[q, q] - a[p, p]) / (2.0 * apq)
+                t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    t = -t
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                s = t * c
+                for r in range(3):
+                    arp = a[r, p]
+                    arq = a[r, q]
+                    a[r, p] = c * arp - s * arq
+                    a[r, q] = s * arp + c * arq
+                for r in range(3):
+                    apr = a[p, r]
+                    aqr = a[q, r]
+                    a[p, r] = c * apr - s * aqr
+                    a[q, r] = s * apr + c * aqr
+                for r in range(3):
+                    vrp = v[r, p]
+                    vrq = v[r, q]
+                    v[r, p] = c * vrp - s * vrq
+                    v[r, q] = s * vrp + c * vrq
+
+
+@nb.njit(cache=True, inline="always")
+def _neg_largest(x, y, z):
+    """Whether the largest-magnitude component (first on ties) is negative."""
+    ax, ay, az = abs(x), abs(y), abs(z)
+    if ax >= ay and ax >= az:
+        return x < 0.0
+    if ay >= az:
+        return y < 0.0
+    return z < 0.0
+
+
+@nb.njit(cache=True, parallel=True)
+def _frames_kernel(P, qidx, nbr, dist, kuse, uv, z, valid, R, count, radius):
+    """Local PCA frames and height coordinates of each query's neighbourhood.
+
+    P (N,3) f64 points; qidx (Q,) query point indices; nbr/dist (Q,K) neighbours (nearest
+    first, -1 padding); kuse: use the first kuse columns. Outputs: uv (Q,K,2), z (Q,K), valid
+    (Q,K), R (Q,3,3), count (Q,), radius (Q,) RMS distance of the used points to the query.
+    """
+    Q, K = nbr.shape
+    for i in nb.prange(Q):
+        q = qidx[i]
+        px, py, pz = P[q, 0], P[q, 1], P[q, 2]
+        cnt = 0
+        cx = 0.0
+        cy = 0.0
+        cz = 0.0
+        rr = 0.0
+        for j in range(K):
+            idx = nbr[i, j]
+            ok = idx >= 0 and j < kuse and math.isfinite(px + py + pz)
+            dx = 0.0
+            dy = 0.0
+            dz = 0.0
+            if ok:
+                dx = P[idx, 0] - px
+                dy = P[idx, 1] - py
+                dz = P[idx, 2] - pz
+                if idx != q and dx == 0.0 and dy == 0.0 and dz == 0.0:
+                    ok = False  # a copy of the query point
+                else:
+                    l = j - 1
+                    while l >= 0 and dist[i, l] == dist[i, j]:
+                        same = uv[i, l, 0] == dx and uv[i, l, 1] == dy and z[i, l] == dz
+                        if valid[i, l] and same:
+                            ok = False  # a copy of an earlier neighbour
+                            break
+                        l -= 1
+            valid[i, j] = ok
+            uv[i, j, 0] = dx
+            uv[i, j, 1] = dy
+            z[i, j] = dz
+            if ok:
+                cnt += 1
+                cx += dx
+                cy += dy
+                cz += dz
+                rr += dx * dx + dy * dy + dz * dz
+        count[i] = cnt
+        radius[i] = math.sqrt(rr / cnt) if cnt > 0 else 0.0
+        a = np.zeros((3, 3))
+        v = np.empty((3, 3))
+        if cnt > 0:
+            cx /= cnt
+            cy /= cnt
+            cz /= cnt
+            for j in range(K):
+                if valid[i, j]:
+                    ex = uv[i, j, 0] - cx
+                    ey = uv[i, j, 1] - cy
+                    ez = z[i, j] - cz
+                    a[0, 0] += ex * ex
+                    a[0, 1] += ex * ey
+                    a[0, 2] += ex * ez
+                    a[1, 1] += ey * ey
+                    a[1, 2] += ey * ez
+                    a[2, 2] += ez * ez
+        tr = a[0, 0] + a[1, 1] + a[2, 2]
+        if tr > 0.0 and math.isfinite(tr):
+            a[1, 0] = a[0, 1]
+            a[2, 0] = a[0, 2]
+            a[2, 1] = a[1, 2]
+            for r in range(3):
+                for c in range(3):
+                    a[r, c] /= tr
+            _jacobi3(a, v)
+            # order eigenpairs: e1 largest, e3 smallest
+            lo = 0
+            hi = 0
+            for c in range(1, 3):
+                if a[c, c] < a[lo, lo]:
+                    lo = c
+                if a[c, c] > a[hi, hi]:
+                    hi = c
+            if lo == hi:
+                hi = (lo + 1) % 3
+            e3x, e3y, e3z = v[0, lo], v[1, lo], v[2, lo]
+            e1x, e1y, e1z = v[0, hi], v[1, hi], v[2, hi]
+        else:
+            e1x, e1y, e1z = 1.0, 0.0, 0.0
+            e3x, e3y, e3z = 0.0, 0.0, 1.0
+        # deterministic signs (as polygeo.frames.pca_frames): largest component positive
+        if _neg_largest(e1x, e1y, e1z):
+            e1x, e1y, e1z = -e1x, -e1y, -e1z
+        if _neg_largest(e3x, e3y, e3z):
+            e3x, e3y, e3z = -e3x, -e3y, -e3z
+        e2x = e3y * e1z - e3z * e1y
+        e2y = e3z * e1x - e3x * e1z
+        e2z = e3x * e1y - e3y * e1x
+        R[i, 0, 0] = e1x
+        R[i, 1, 0] = e1y
+        R[i, 2, 0] = e1z
+        R[i, 0, 1] = e2x
+        R[i, 1, 1] = e2y
+        R[i, 2, 1] = e2z
+        R[i, 0, 2] = e3x
+        R[i, 1, 2] = e3y
+        R[i, 2, 2] = e3z
+        for j in range(K):
+            if valid[i, j]:
+                dx = uv[i, j, 0]
+                dy = uv[i, j, 1]
+                dz = z[i, j]
+                uv[i, j, 0] = dx * e1x + dy * e1y + dz * e1z
+                uv[i, j, 1] = dx * e2x + dy * e2y + dz * e2z
+                z[i, j] = dx * e3x + dy * e3y + dz * e3z
+            else:
+                uv[i, j, 0] = 0.0
+                uv[i, j, 1] = 0.0
+                z[i, j] = 0.0
+
+
+@nb.njit(cache=True, parallel=True)
+def _origin_geometry_kernel(coef, R, normal, d1, d2, kk):
+    """Normal, principal directions and curvatures of jets at (u, v) = 0, in world axes.
+
+    coef (Q,M) jets coefficients (M >= 3); R (Q,3,3) local-to-world rotations. Outputs
+    normal/d1/d2 (Q,3), kk (Q,4): k1, k2, H, K. The patch x(u, v) = (u, v, f(u, v)) at the
+    origin, with the same closed forms and conventions as :func:`polygeo.diffgeo.from_derivatives`
+    (normal on the +z side; shape operator diagonalised in t1 = x_u/|x_u|, t2 = n x t1; d1 at
+    angle atan2(2b, a - c)/2 from t1; d1 = t1 at umbilics).
+    """
+    Q, M = coef.shape
+    for i in nb.prange(Q):
+        a10 = coef[i, 1]
+        a01 = coef[i, 2]
+        a20 = coef[i, 3] if M > 3 else 0.0
+        a11 = coef[i, 4] if M > 4 else 0.0
+        a02 = coef[i, 5] if M > 5 else 0.0
+        # x_u = (1, 0, a10), x_v = (0, 1, a01), x_uu = (0, 0, 2 a20), ...
+        w = math.sqrt(1.0 + a10 * a10 + a01 * a01)
+        nx, ny, nz = -a10 / w, -a01 / w, 1.0 / w
+        L = 2.0 * a20 / w
+        Mm = a11 / w
+        Nn = 2.0 * a02 / w
+        su = math.sqrt(1.0 + a10 * a10)
+        t1x, t1y, t1z = 1.0 / su, 0.0, a10 / su
+        t2x = ny * t1z - nz * t1y
+        t2y = nz * t1x - nx * t1z
+        t2z = nx * t1y - ny * t1x
+        c11 = su
+        c12 = a10 * a01 / su  # x_v . t1
+        c22 = t2y + a01 * t2z  # x_v . t2
+        i11 = 1.0 / c11
+        i12 = -c12 / (c11 * c22)
+        i22 = 1.0 / c22
+        a = i11 * i11 * L
+        b = i11 * (i12 * L + i22 * Mm)
+        c = i12 * i12 * L + 2.0 * i12 * i22 * Mm + i22 * i22 * Nn
+        m = 0.5 * (a + c)
+        hd = 0.5 * (a - c)
+        r2 = hd * hd + b * b
+        r = math.sqrt(r2)
+        if r2 > 1e-30 * max(m * m, 1e-300):
+            theta = 0.5 * math.atan2(b, hd)
+        else:
+            theta = 0.0
+        ct = math.cos(theta)
+        st = math.sin(theta)
+        ex = ct * t1x + st * t2x
+        ey = ct * t1y + st * t2y
+        ez = ct * t1z + st * t2z
+        fx = ny * ez - nz * ey
+        fy = nz * ex - nx * ez
+        fz = nx * ey - ny * ex
+        for rr in range(3):
+            normal[i, rr] = R[i, rr, 0] * nx + R[i, rr, 1] * ny + R[i, rr, 2] * nz
+            d1[i, rr] = R[i, rr, 0] * ex + R[i, rr, 1] * ey + R[i, rr, 2] * ez
+            d2[i, rr] = R[i, rr, 0] * fx + R[i, rr, 1] * fy + R[i, rr, 2] * fz
+        kk[i, 0] = m + r
+        kk[i, 1] = m - r
+        kk[i, 2] = m
+        kk[i, 3] = a * c - b * b
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+class _Local:
+    """Height coordinates of a chunk of neighbourhoods (NumPy, float64)."""
+
+    def __init__(self, P, qidx, nbr, dist, kuse):
+        Q, K = nbr.shape
+        self.uv = np.empty((Q, K, 2))
+        self.z = np.empty((Q, K))
+        self.valid = np.zeros((Q, K), dtype=np.bool_)
+        self.R = np.empty((Q, 3, 3))
+        self.count = np.zeros(Q, dtype=np.int64)
+        self.radius = np.zeros(Q)
+        if Q:
+            _frames_kernel(
+                P, qidx, nbr, dist, int(kuse), self.uv, self.z, self.valid, self.R, self.count,
+                self.radius,
+            )
+
+
+def _fit(local: _Local, order: int, weights: np.ndarray | None) -> jets.JetFit:
+    return jets.fit(
+        torch.from_numpy(local.uv),
+        torch.from_numpy(local.z),
+        order,
+        mask=torch.from_numpy(local.valid),
+        weights=None if weights is None else torch.from_numpy(weights),
+        backend="numba",
+    )
+
+
+def _geometry(coeffs: np.ndarray, R: np.ndarray) -> dict[str, np.ndarray]:
+    Q = coeffs.shape[0]
+    normal = np.empty((Q, 3))
+    d1 = np.empty((Q, 3))
+    d2 = np.empty((Q, 3))
+    kk = np.empty((Q, 4))
+    if Q:
+        _origin_geometry_kernel(np.ascontiguousarray(coeffs), R, normal, d1, d2, kk)
+    return {
+        "normals": normal, "d1": d1, "d2": d2,
+        "k1": kk[:, 0], "k2": kk[:, 1], "mean_curvature": kk[:, 2], "gaussian_curvature": kk[:, 3],
+    }
+
+
+def _gaussian_weights(local: _Local) -> np.ndarray:
+    r2 = (local.uv**2).sum(-1) + local.z**2
+    h2 = np.maximum(local.radius**2, 1e-300)[:, None]
+    return np.where(local.valid, np.exp(-r2 / h2), 0.0)
+
+
+def _select_order(fits: list[jets.JetFit], orders: tuple[int, ...], alpha: float) -> np.ndarray:
+    """Index into ``orders`` per item: the lowest order no higher one beats by an F-test."""
+    from scipy.stats import f as fdist
+
+    n = fits[0].n_points.numpy().astype(np.float64)
+    rss = [f.residual.double().numpy() ** 2 * n for f in fits]
+    ok = [f.status.numpy() == 0 for f in fits]
+    cur = np.zeros(n.shape[0], dtype=np.int64)
+    for j in range(1, len(orders)):
+        mc = np.array([jets.n_coeffs(orders[c]) for c in range(len(orders))])[cur]
+        mj = jets.n_coeffs(orders[j])
+        rss_c = np.choose(cur, rss)
+        dof = n - mj
+        good = ok[j] & (dof > 0) & (mj > mc)
+        num = (rss_c - rss[j]) / np.maximum(mj - mc, 1)
+        den = rss[j] / np.maximum(dof, 1)
+        scale = np.maximum(rss_c, 1e-300)
+        exact = rss_c <= 1e-24 * scale + 1e-300  # the current model is already exact
+        with np.errstate(divide="ignore", invalid="ignore"):
+            F = np.where(den > 0, num / den, np.inf)
+        crit = fdist.ppf(1.0 - alpha, np.maximum(mj - mc, 1), np.maximum(dof, 1))
+        better = good & ~exact & (F > crit)
+        cur = np.where(better, j, cur)
+    return cur
+
+
+def _ici_select(normals: list[np.ndarray], delta: list[np.ndarray], gamma: float) -> np.ndarray:
+    """Pick a neighbourhood size by intersection of confidence intervals (ICI).
+
+    Over increasing k: the last candidate whose normal stays within ``gamma (delta_i +
+    delta_j)`` of every smaller neighbourhood's normal.
+    """
+    Q = normals[0].shape[0]
+    chosen = np.zeros(Q, dtype=np.int64)
+    alive = np.ones(Q, dtype=bool)
+    for c in range(1, len(normals)):
+        ok = alive.copy()
+        for j in range(c):
+            cosang = np.abs(np.einsum("ij,ij->i", normals[c], normals[j]))
+            ang = np.arccos(np.clip(cosang, 0.0, 1.0))
+            ok &= ang <= gamma * (delta[c] + delta[j])
+        ok &= np.isfinite(delta[c])
+        chosen = np.where(ok, c, chosen)
+        alive = ok
+    return chosen
+
+
+# ----------------------------------------------------------------------------- torch path
+
+
+def _torch_chunk(pts_t, qidx, nbr, valid, order, weights):
+    """Differentiable path with J1's frames / jets / diffgeo (one chunk)."""
+    from .diffgeo import from_jet, to_world
+    from .frames import pca_frames
+
+    q = torch.from_numpy(qidx)
+    idx = torch.from_numpy(np.where(valid, nbr, 0))
+    m = torch.from_numpy(valid)
+    p64 = pts_t.to(torch.float64)
+    local = p64[idx] - p64[q][:, None, :]  # centred on the query point first
+    local = torch.where(m[..., None], local, torch.zeros_like(local))
+    fr = pca_frames(local, mask=m)
+    R = fr.rotation
+    uvz = local @ R
+    w = None if weights is None else torch.from_numpy(weights)
+    fit = jets.fit(uvz[..., :2], uvz[..., 2], order, mask=m, weights=w, backend="torch")
+    geom = to_world(from_jet(fit.coeffs).squeeze(1), R)
+    return fit, geom, R
+
+
+# ----------------------------------------------------------------------------- public API
+
+
+def _as_points(points: Any) -> tuple[torch.Tensor, bool]:
+    numpy_in = not isinstance(points, torch.Tensor)
+    t = as_tensor(points, "points")
+    check_shape(t, "points", ("N", 3))
+    return t, numpy_in
+
+
+def differential_quantities(
+    points: Any,
+    faces: Any = None,
+    normals: Any = None,
+    *,
+    k: int | str = 20,
+    radius: float | None = None,
+    rings: int | None = None,
+    order: int | str = 2,
+    weights: str | None = None,
+    orient: str = "auto",
+    monge: bool = False,
+    forms: bool = False,
+    batch_size: int = 65536,
+    progress: bool | None = None,
+    workers: int = -1,
+    backend: str = "auto",
+    k_candidates: tuple[int, ...] = AUTO_K_CANDIDATES,
+    auto_orders: tuple[int, ...] = AUTO_ORDERS,
+    alpha: float = 0.01,
+) -> DifferentialQuantities:
+    """Per-point normals, principal curvatures and directions, H and K by n-jet fitting.
+
+    Parameters
+    ----------
+    points : (N, 3) float array or tensor
+        Points or mesh vertices (length unit L). Non-finite points are allowed: they get
+        status ``NONFINITE_INPUT`` and NaN outputs and are nobody's neighbour.
+    faces : (F, 3) int, optional
+        Triangles when ``points`` are mesh vertices: used to orient the normals (winding made
+        consistent, outward for closed components; duplicate vertices welded first) and, with
+        ``rings``, as neighbourhoods.
+    normals : (N, 3) float, optional
+        Input normals: only their signs are used, to orient the estimates.
+    k : int or "auto"
+        Neighbourhood size, the point itself included (CGAL's convention); clipped to the
+        number of finite points. Must be at least ``n_coeffs(order)`` (6 for order 2).
+        ``"auto"``: per point, the largest of ``k_candidates`` whose normal still agrees with
+        those of all smaller neighbourhoods within their noise-driven confidence intervals
+        (intersection of confidence intervals, a bias-variance rule).
+    radius : float, optional
+        Use all neighbours within this distance (L) instead of k nearest (``k`` then caps
+        the count, nearest kept, unless ``k="auto"``).
+    rings : int, optional
+        With ``faces``: use the mesh ``rings``-ring of each vertex as its neighbourhood.
+    order : int or "auto"
+        Jet order 1..4 (1: plane, zero curvature; 2: osculating quadric; 3, 4: cubic and
+        quartic terms, more accurate on clean data, more sensitive to noise). ``"auto"``: per
+        point, the lowest of ``auto_orders`` that no higher one improves significantly (F-test
+        on the residuals at level ``alpha``).
+    weights : {None, "gaussian"}
+        Uniform least squares (CGAL) or Gaussian weights ``exp(-d^2 / rms^2)`` of the
+        distance to the point.
+    orient : {"auto", "input", "mesh", "propagate", "none"}
+        Source of the normals' signs (see the module docstring); "none" keeps the fit's sign.
+    monge : bool
+        Also return the Monge coefficients (``monge`` field).
+    forms : bool
+        Also return the fundamental forms (``metric``, ``second_form`` fields).
+    batch_size : int
+        Points per chunk (bounds memory: about ``batch_size * k * 60`` bytes).
+    progress : bool or None
+        Show a progress bar; None: for inputs of at least 200 000 points.
+    workers : int
+        Threads for the k-d tree (``-1``: all cores; the compiled kernels use numba's threads).
+    backend : {"auto", "numba", "torch"}
+        "torch" is differentiable w.r.t. ``points``; "auto" picks it when ``points`` is a
+        tensor requiring grad.
+    k_candidates : tuple of int
+        Neighbourhood sizes tried by ``k="auto"``.
+    auto_orders : tuple of int
+        Orders tried by ``order="auto"``.
+    alpha : float
+        Significance level of the order F-test.
+
+    Returns
+    -------
+    DifferentialQuantities
+        NumPy arrays when ``points`` is NumPy, else torch tensors of the points' dtype.
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, ``k < n_coeffs(order)``, ``order`` outside 1..4, unknown options, a
+        reference source that is missing (``orient="input"`` without normals, ...).
+    TypeError
+        Non-numeric input, non-integer faces.
+    """
+    pts_t, numpy_in = _as_points(points)
+    out_dtype = pts_t.dtype
+    n = pts_t.shape[0]
+    check_choice(orient, "orient", ("auto", "input", "mesh", "propagate", "none"))
+    check_choice(weights, "weights", (None, "gaussian"))
+    check_choice(backend, "backend", ("auto", "numba", "torch"))
+    auto_order = isinstance(order, str)
+    if auto_order:
+        check_choice(order, "order", ("auto",))
+        orders = tuple(check_int(o, "auto_orders", low=1, high=4) for o in auto_orders)
+        if not orders:
+            raise ValueError("auto_orders: expected at least one order")
+        orders = tuple(sorted(set(orders)))
+    else:
+        orders = (check_int(order, "order", low=1, high=4),)
+    max_order = max(orders)
+    m_min = jets.n_coeffs(min(orders))
+    auto_k = isinstance(k, str)
+    if auto_k:
+        check_choice(k, "k", ("auto",))
+        kc = sorted({check_int(c, "k_candidates", low=m_min) for c in k_candidates})
+        if not kc:
+            raise ValueError("k_candidates: expected at least one size")
+    else:
+        k = check_int(k, "k", low=1)
+        if k < m_min:
+            raise ValueError(
+                f"k: an order-{min(orders)} jet has {m_min} coefficients, so k must be at least "
+                f"{m_min} (the point itself included), got {k}"
+            )
+        kc = [k]
+    if radius is not None:
+        radius = check_positive(radius, "radius")
+    batch_size = check_int(batch_size, "batch_size", low=1)
+    alpha = float(alpha)
+    if not 0.0 < alpha < 1.0:
+        raise ValueError(f"alpha: expected a value in (0, 1), got {alpha}")
+    needs_grad = torch.is_grad_enabled() and pts_t.requires_grad
+    use_torch = backend == "torch" or (backend == "auto" and needs_grad)
+    if use_torch and (auto_k or auto_order):
+        raise ValueError("backend: the differentiable path supports fixed k and order only")
+
+    P = np.ascontiguousarray(pts_t.detach().cpu().to(torch.float64).numpy())
+    finite = np.isfinite(P).all(axis=1)
+    f_np = _faces_np(faces, n) if faces is not None else None
+    ref = None
+    if normals is not None:
+        nt = as_tensor(normals, "normals")
+        check_shape(nt, "normals", (n, 3))
+        ref = nt.detach().cpu().to(torch.float64).numpy()
+    if orient == "input" and ref is None:
+        raise ValueError("orient: 'input' needs normals")
+    if orient == "mesh" and f_np is None:
+        raise ValueError("orient: 'mesh' needs faces")
+    if rings is not None:
+        rings = check_int(rings, "rings", low=1)
+        if f_np is None:
+            raise ValueError("rings: mesh rings need faces")
+
+    # ---------------------------------------------------------------- neighbourhoods + fits
+    n_fin = int(finite.sum())
+    kmax = max(kc)
+    index = PointIndex(P) if rings is None else None
+    rep = np.arange(n)  # representative of each point among exact duplicates
+    deduped = False
+    ring = None
+    if rings is not None:
+        ring = mesh_k_ring(f_np, n, rings)
+        r_idx = np.where(ring.mask & finite[np.maximum(ring.index, 0)], ring.index, -1)
+        # sort each ring by distance so that the duplicate scan and k caps see nearest first
+        r_d = np.linalg.norm(P[np.maximum(r_idx, 0)] - P[:, None, :], axis=-1)
+        r_d = np.where(r_idx >= 0, r_d, np.inf)
+        o = np.argsort(r_d, axis=1, kind="stable")
+        r_idx = np.take_along_axis(r_idx, o, 1)
+        r_d = np.take_along_axis(r_d, o, 1)
+        if not auto_k and r_idx.shape[1] > k:
+            r_idx, r_d = r_idx[:, :k], r_d[:, :k]
+        kmax = r_idx.shape[1]
+    kq = min(kmax, max(n_fin, 1))
+    k_graph = min(6, kq)
+    M = jets.n_coeffs(max_order)
+    res = {
+        "normals": np.full((n, 3), np.nan), "d1": np.full((n, 3), np.nan),
+        "d2": np.full((n, 3), np.nan), "k1": np.full(n, np.nan), "k2": np.full(n, np.nan),
+        "mean_curvature": np.full(n, np.nan), "gaussian_curvature": np.full(n, np.nan),
+    }
+    status = np.full(n, int(Status.NONFINITE_INPUT), dtype=np.int64)
+    fitted_order = np.zeros(n, dtype=np.int64)
+    n_nb = np.zeros(n, dtype=np.int64)
+    resid = np.full(n, np.nan)
+    frame = np.full((n, 3, 3), np.nan)
+    coeffs = np.zeros((n, M))
+    graph = np.full((n, k_graph), -1, dtype=np.int64)
+    torch_parts: list[tuple[np.ndarray, Any, Any, Any]] = []
+
+    chunks = range(0, n, batch_size)
+    show = (n >= 200_000) if progress is None else bool(progress)
+    if show:
+        from tqdm.auto import tqdm
+
+        chunks = tqdm(chunks, total=math.ceil(n / batch_size), desc="jets", unit="chunk")
+    for start in chunks:
+        q = np.arange(start, min(n, start + batch_size))
+        q = q[finite[q]]
+        if q.size == 0:
+            continue
+        if ring is not None:
+            nbr, dist = r_idx[q], r_d[q]
+        else:
+            upper = np.inf if radius is None else np.nextafter(radius, np.inf) * (1 + 1e-12)
+            nbr, dist = index.query(P[q], kq, workers=workers, upper=upper, self_index=rep[q])
+            if not deduped and nbr.shape[1] > 1 and bool((dist[:, 1] == 0).any()):
+                # exact duplicates: keep one copy per location in the tree, answer all copies
+                deduped = True
+                rep = _representatives(P, finite)
+                Pt = P.copy()
+                Pt[rep != np.arange(n)] = np.nan
+                index = PointIndex(Pt)
+                n_distinct = int((rep[finite] == np.flatnonzero(finite)).sum())
+                kq = min(kmax, max(n_distinct, 1))
+                nbr, dist = index.query(
+                    P[q], kq, workers=workers, upper=upper, self_index=rep[q]
+                )
+        graph[q, : min(k_graph, nbr.shape[1])] = nbr[:, :k_graph]
+        if use_torch:
+            local = _Local(P, rep[q], nbr, dist, nbr.shape[1])
+            w = _gaussian_weights(local) if weights == "gaussian" else None
+            fit, geom, R = _torch_chunk(pts_t, rep[q], nbr, local.valid, orders[0], w)
+            torch_parts.append((q, fit, geom, R))
+            status[q] = fit.status.numpy()
+            fitted_order[q] = fit.fitted_order.numpy()
+            n_nb[q] = fit.n_points.numpy()
+            continue
+        # candidate neighbourhood sizes (one unless k="auto")
+        sizes = [c for c in kc if c <= nbr.shape[1]] or [nbr.shape[1]]
+        if auto_k and radius is None and ring is None:
+            sizes = sorted({min(c, kq) for c in kc})
+        per_size = []
+        for size in sizes:
+            local = _Local(P, rep[q], nbr, dist, size)
+            w = _gaussian_weights(local) if weights == "gaussian" else None
+            fits = [_fit(local, o, w) for o in orders]
+            pick = _select_order(fits, orders, alpha) if len(orders) > 1 else np.zeros(q.size, int)
+            co = np.zeros((q.size, M))
+            for j, fj in enumerate(fits):
+                sel = pick == j
+                if sel.any():
+                    c = fj.coeffs.double().numpy()
+                    co[sel, : c.shape[1]] = c[sel]
+            stat = np.choose(pick, [f.status.numpy() for f in fits])
+            ford = np.choose(pick, [f.fitted_order.numpy() for f in fits])
+            rres = np.choose(pick, [f.residual.double().numpy() for f in fits])
+            npts = fits[0].n_points.numpy()
+            per_size.append((local, co, stat, ford, rres, npts))
+        if len(per_size) > 1:
+            geoms = [_geometry(ps[1], ps[0].R) for ps in per_size]
+            deltas = []
+            for ps in per_size:
+                local, _, _, ford, rres, npts = ps
+                mm = np.array([jets.n_coeffs(max(o, 1)) for o in ford])
+                dof = np.maximum(npts - mm, 1)
+                sigma = rres * np.sqrt(npts / dof)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    d = sigma / (np.maximum(local.radius, 1e-300) * np.sqrt(np.maximum(npts, 1)))
+                deltas.append(np.where(ps[2] == 0, d, np.inf))
+            choice = _ici_select([g["normals"] for g in geoms], deltas, gamma=2.0)
+        else:
+            choice = np.zeros(q.size, dtype=np.int64)
+        for s_i, ps in enumerate(per_size):
+            sel = choice == s_i
+            if not sel.any():
+                continue
+            local, co, stat, ford, rres, npts = ps
+            g = _geometry(co[sel], local.R[sel])
+            qs = q[sel]
+            for key in res:
+                res[key][qs] = g[key]
+            status[qs] = stat[sel]
+            fitted_order[qs] = ford[sel]
+            n_nb[qs] = npts[sel]
+            resid[qs] = rres[sel]
+            frame[qs] = local.R[sel]
+            coeffs[qs] = co[sel]
+
+    # ---------------------------------------------------------------- orientation
+    if use_torch:
+        out = _assemble_torch(torch_parts, n, M, out_dtype)
+        res_t, frame_t, coeffs_t, resid_t = out
+        nrm_np = res_t["normals"].detach().numpy()
+    else:
+        nrm_np = res["normals"]
+    sign = _orientation(P, nrm_np, status, graph, ref, f_np, orient, workers)
+
+    # ---------------------------------------------------------------- outputs
+    if use_torch:
+        s_t = torch.from_numpy(sign)
+        res_t = _apply_sign_torch(res_t, s_t)
+        frame_t = _flip_frame_torch(frame_t, s_t)
+        coeffs_t = coeffs_t * _coeff_signs(torch.from_numpy(sign), max_order)
+        dq = {k_: v.to(out_dtype) for k_, v in res_t.items()}
+        extra = dict(frame=frame_t.to(out_dtype), coeffs=coeffs_t.to(out_dtype),
+                     residual=resid_t.to(out_dtype))
+    else:
+        res = _apply_sign_np(res, sign)
+        frame = _flip_frame_np(frame, sign)
+        coeffs = coeffs * _coeff_signs(torch.from_numpy(sign), max_order).numpy()
+        dq = {k_: torch.from_numpy(v).to(out_dtype) for k_, v in res.items()}
+        extra = dict(
+            frame=torch.from_numpy(frame).to(out_dtype),
+            coeffs=torch.from_numpy(coeffs).to(out_dtype),
+            residual=torch.from_numpy(resid).to(out_dtype),
+        )
+    metric = second = None
+    if forms:
+        metric, second = _forms(extra["coeffs"].double())
+        metric, second = metric.to(out_dtype), second.to(out_dtype)
+    monge_out = None
+    if monge:
+        monge_out = _monge(extra["coeffs"].double(), extra["frame"].double(), P, out_dtype)
+    result = DifferentialQuantities(
+        points=pts_t,
+        status=torch.from_numpy(status),
+        order=torch.from_numpy(fitted_order),
+        n_neighbors=torch.from_numpy(n_nb),
+        metric=metric,
+        second_form=second,
+        monge=monge_out,
+        **dq,
+        **extra,
+    )
+    if numpy_in:
+        conv = {}
+        for fld in fields(result):
+            v = getattr(result, fld.name)
+            if isinstance(v, torch.Tensor):
+                conv[fld.name] = v.detach().cpu().numpy()
+            elif isinstance(v, dict):
+                conv[fld.name] = {a: b.detach().cpu().numpy() for a, b in v.items()}
+        conv["points"] = points if isinstance(points, np.ndarray) else np.asarray(points)
+        result = DifferentialQuantities(**{**{f.name: getattr(result, f.name)
+                                              for f in fields(result)}, **conv})
+    return result
+
+
+# ----------------------------------------------------------------------------- pieces
+
+
+def _representatives(P: np.ndarray, finite: np.ndarray) -> np.ndarray:
+    """Index of the first copy of each point among exact duplicates (itself if unique)."""
+    n = P.shape[0]
+    rep = np.arange(n)
+    idx = np.flatnonzero(finite)
+    if idx.size:
+        _, first, inv = np.unique(P[idx], axis=0, return_index=True, return_inverse=True)
+        rep[idx] = idx[first][inv.reshape(-1)]
+    return rep
+
+
+def _faces_np(faces: Any, n: int) -> np.ndarray:
+    f = as_tensor(faces, "faces", floating=False)
+    if f.is_floating_point() or f.dtype == torch.bool:
+        raise TypeError(f"faces: expected an integer array, got dtype {f.dtype}")
+    check_shape(f, "faces", ("F", 3))
+    f = f.to(torch.int64).numpy()
+    if f.size and (f.min() < 0 or f.max() >= n):
+        raise ValueError(
+            f"faces: expected vertex indices in [0, {n - 1}], got [{f.min()}, {f.max()}]"
+        )
+    return f
+
+
+def _orientation(P, nrm, status, graph, ref, faces, orient, workers) -> np.ndarray:
+    """Sign (+1/-1) per point making the estimated normals consistent (see module doc)."""
+    from . import orient as ori
+    from .mesh import weld_vertices
+
+    n = P.shape[0]
+    sign = np.ones(n)
+    if orient == "none" or n == 0:
+        return sign
+    usable = np.isfinite(nrm).all(1) & (status != Status.NONFINITE_INPUT)
+    ref_dir = None
+    if orient in ("auto", "input") and ref is not None:
+        ref_dir = np.where(np.isfinite(ref), ref, 0.0)
+    elif orient in ("auto", "mesh") and faces is not None:
+        Pw = np.where(np.isfinite(P), P, np.nan)
+        w = weld_vertices(Pw, faces)
+        wn, wvalid = ori.mesh_reference_normals(w.vertices, w.faces)
+        ref_dir = np.where(wvalid[:, None], wn, 0.0)[w.mapping]
+    nz = np.where(usable[:, None], nrm, 0.0)
+    decided = np.zeros(n, dtype=bool)
+    if ref_dir is not None:
+        dot = np.einsum("ij,ij->i", nz, ref_dir)
+        decided = usable & (dot != 0)
+        sign = np.where(decided & (dot < 0), -1.0, 1.0)
+        if decided.all() or not (usable & ~decided).any():
+            return sign
+    prop = ori.propagate_orientation(P, nz, neighbors=graph, workers=workers)
+    s_prop = prop.sign
+    comp = prop.component
+    if ref_dir is not None and decided.any():
+        # per component: agree with the majority of decided points
+        ok = decided & (comp >= 0)
+        vote = np.zeros(max(int(comp.max()) + 1, 1))
+        dot = np.abs(np.einsum("ij,ij->i", nz, ref_dir))
+        np.add.at(vote, comp[ok], (sign[ok] * s_prop[ok]) * dot[ok])
+        comp_sign = np.where(vote < 0, -1.0, 1.0)
+        rest = usable & ~decided & (comp >= 0)
+        sign[rest] = s_prop[rest] * comp_sign[comp[rest]]
+        return sign
+    return np.where(usable, s_prop, 1.0)
+
+
+def _apply_sign_np(res: dict, s: np.ndarray) -> dict:
+    neg = s < 0
+    out = dict(res)
+    out["normals"] = res["normals"] * s[:, None]
+    out["k1"] = np.where(neg, -res["k2"], res["k1"])
+    out["k2"] = np.where(neg, -res["k1"], res["k2"])
+    out["d1"] = np.where(neg[:, None], res["d2"], res["d1"])
+    out["d2"] = np.where(neg[:, None], res["d1"], res["d2"])
+    out["mean_curvature"] = res["mean_curvature"] * s
+    return out
+
+
+def _apply_sign_torch(res: dict, s: torch.Tensor) -> dict:
+    neg = s < 0
+    out = dict(res)
+    out["normals"] = res["normals"] * s[:, None].to(res["normals"].dtype)
+    out["k1"] = torch.where(neg, -res["k2"], res["k1"])
+    out["k2"] = torch.where(neg, -res["k1"], res["k2"])
+    out["d1"] = torch.where(neg[:, None], res["d2"], res["d1"])
+    out["d2"] = torch.where(neg[:, None], res["d1"], res["d2"])
+    out["mean_curvature"] = res["mean_curvature"] * s.to(res["mean_curvature"].dtype)
+    return out
+
+
+def _coeff_signs(s: torch.Tensor, order: int) -> torch.Tensor:
+    """Factors turning jet coefficients in (e1, e2, e3) into ones in (e1, -e2, -e3).
+
+    With ``v' = -v`` and ``z' = -z``: ``a'_pq = -(-1)^q a_pq`` where the sign is flipped.
+    """
+    q = jets.exponents(order)[:, 1].to(torch.float64)  # (M,)
+    s = s.to(torch.float64)[:, None]
+    return torch.where(s < 0, -((-1.0) ** q)[None, :], torch.ones_like(q)[None, :])
+
+
+def _flip_frame_np(frame: np.ndarray, s: np.ndarray) -> np.ndarray:
+    # flipping e3 keeps a right-handed frame when e2 flips too
+    f = frame.copy()
+    f[:, :, 1] *= s[:, None]
+    f[:, :, 2] *= s[:, None]
+    return f
+
+
+def _flip_frame_torch(frame: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    m = torch.stack([torch.ones_like(s), s, s], -1).to(frame.dtype)
+    return frame * m[:, None, :]
+
+
+def _assemble_torch(parts, n, M, dtype):
+    keys = ("normals", "d1", "d2", "k1", "k2", "mean_curvature", "gaussian_curvature")
+    shapes = {"normals": (3,), "d1": (3,), "d2": (3,)}
+    res = {
+        k_: torch.full((n, *shapes.get(k_, ())), float("nan"), dtype=torch.float64)
+        for k_ in keys
+    }
+    frame = torch.full((n, 3, 3), float("nan"), dtype=torch.float64)
+    coeffs = torch.zeros((n, M), dtype=torch.float64)
+    resid = torch.full((n,), float("nan"), dtype=torch.float64)
+    for q, fit, geom, R in parts:
+        qt = torch.from_numpy(q)
+        for k_ in keys:
+            name = "normal" if k_ == "normals" else k_
+            res[k_] = res[k_].index_copy(0, qt, getattr(geom, name).to(torch.float64))
+        frame = frame.index_copy(0, qt, R.to(torch.float64))
+        c = fit.coeffs.to(torch.float64)
+        cpad = torch.zeros((c.shape[0], M), dtype=torch.float64)
+        cpad[:, : c.shape[1]] = c
+        coeffs = coeffs.index_copy(0, qt, cpad)
+        resid = resid.index_copy(0, qt, fit.residual.to(torch.float64))
+    return res, frame, coeffs, resid
+
+
+def _forms(coeffs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    from .diffgeo import from_jet
+
+    g = from_jet(coeffs).squeeze(1)
+    return g.metric, g.second_form
+
+
+def _monge(coeffs, frame, P, dtype) -> dict[str, torch.Tensor]:
+    from .diffgeo import monge_form
+
+    ok = torch.isfinite(frame).all(-1).all(-1)
+    origin_p = torch.from_numpy(np.where(np.isfinite(P), P, 0.0))
+    R = torch.where(ok[:, None, None], frame, torch.eye(3, dtype=frame.dtype))
+    mf = monge_form(coeffs, R, origin_p)
+    # the coefficients/frame are already oriented (the jet's +z side is the final normal)
+    nan = torch.tensor(float("nan"), dtype=coeffs.dtype)
+    out = {
+        "origin": torch.where(ok[:, None], mf.origin, nan),
+        "b": torch.where(ok[:, None], mf.b, nan),
+        "c": torch.where(ok[:, None], mf.c, nan),
+    }
+    return {k_: v.to(dtype) for k_, v in out.items()}
+
+
+def _default_threads() -> int:  # pragma: no cover - informational
+    return os.cpu_count() or 1
