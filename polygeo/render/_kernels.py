@@ -305,9 +305,11 @@ def soft_forward(
                     zn = (zfar - zp) * inv_range
                     if mode == MODE_VERTEX:
                         for c in range(C):
-                            col[c] = p0 * attr[ba, f, 0, c] + p1 * attr[ba, f, 1, c] + p2 * attr[
-                                ba, f, 2, c
-                            ]
+                            col[c] = (
+                                p0 * attr[ba, f, 0, c]
+                                + p1 * attr[ba, f, 1, c]
+                                + p2 * attr[ba, f, 2, c]
+                            )
                     else:
                         uu = p0 * uvs[bu, f, 0, 0] + p1 * uvs[bu, f, 1, 0] + p2 * uvs[bu, f, 2, 0]
                         vv = p0 * uvs[bu, f, 0, 1] + p1 * uvs[bu, f, 1, 1] + p2 * uvs[bu, f, 2, 1]

@@ -74,6 +74,7 @@ def _band(fv, q, s, attr, uvs, tex, bg):
         return alpha, None
     c = w.clamp(0.0, 1.0)
     c = c / c.sum(-1, keepdim=True).clamp_min(1e-300)
+    c = torch.where(used.unsqueeze(-1), c, torch.full_like(c, 1.0 / 3.0))  # unused: any finite
     z = torch.where(valid.unsqueeze(-1), fv[..., 2], torch.ones_like(fv[..., 2])).unsqueeze(1)
     u = c / z
     U = u.sum(-1)
@@ -132,8 +133,10 @@ def soft_rasterize_dense(
     B = face_verts.shape[0]
     H, W = int(height), int(width)
     dtype = face_verts.dtype
-    C = face_colors.shape[-1] if face_colors is not None else (
-        texture.shape[-1] if texture is not None else 0
+    C = (
+        face_colors.shape[-1]
+        if face_colors is not None
+        else (texture.shape[-1] if texture is not None else 0)
     )
     bg = torch.as_tensor(s.background_for(C) if C else [0.0], dtype=dtype)
     rows = H if chunk_rows is None else max(1, int(chunk_rows))

@@ -133,9 +133,7 @@ class RasterSettings:
         self.znear = check_positive(self.znear, "znear")
         self.zfar = check_positive(self.zfar, "zfar")
         if self.zfar <= self.znear:
-            raise ValueError(
-                f"zfar: expected a value > znear = {self.znear!r}, got {self.zfar!r}"
-            )
+            raise ValueError(f"zfar: expected a value > znear = {self.znear!r}, got {self.zfar!r}")
         self.min_area = check_positive(self.min_area, "min_area", strict=False)
         if not isinstance(self.hard, (bool, np.bool_)):
             raise TypeError(f"hard: expected a bool, got {type(self.hard).__name__}")

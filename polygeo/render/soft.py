@@ -21,6 +21,8 @@ per-face tensor is ever stored). Faces with any vertex closer than ``znear`` are
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any, NamedTuple
 
 import numba
@@ -83,6 +85,29 @@ def _setup(fv_np: np.ndarray, s: RasterSettings, H: int, W: int, margin: float):
     return fd, bin_off, bin_f
 
 
+# Below this many (pixel, candidate face) pairs a kernel runs on the calling thread only:
+# starting the parallel region costs more than it saves (a lot more on a loaded machine).
+_SERIAL_WORK = 1 << 16
+
+
+@contextmanager
+def _threads(work: int) -> Iterator[int]:
+    """Run the enclosed numba kernels on 1 thread for small work, else on the current setting."""
+    n = numba.get_num_threads()
+    use = 1 if work < _SERIAL_WORK else n
+    if use != n:
+        numba.set_num_threads(use)
+    try:
+        yield use
+    finally:
+        if use != n:
+            numba.set_num_threads(n)
+
+
+def _work(bin_f: np.ndarray, ts: int) -> int:
+    return int(bin_f.shape[0]) * ts * ts
+
+
 def _np64(t: torch.Tensor | None, shape: tuple[int, ...]) -> np.ndarray:
     if t is None:
         return np.zeros(shape)
@@ -110,11 +135,12 @@ class _SoftRasterize(torch.autograd.Function):
             m = np.empty((B, H, W))
             Z = np.empty((B, H, W))
             rgb = np.empty((B, H, W, C))
-        K.soft_forward(
-            fd, bin_off, bin_f, H, W, s.tile_size, cfg.margin, cfg.cutoff, s.sigma,
-            1.0 / s.gamma, s.znear, s.zfar, s.background_depth, cfg.bg, cfg.mode,
-            attr_np, uvs_np, tex_np, P, m, Z, rgb,
-        )  # fmt: skip
+        with _threads(_work(bin_f, s.tile_size)):
+            K.soft_forward(
+                fd, bin_off, bin_f, H, W, s.tile_size, cfg.margin, cfg.cutoff, s.sigma,
+                1.0 / s.gamma, s.znear, s.zfar, s.background_depth, cfg.bg, cfg.mode,
+                attr_np, uvs_np, tex_np, P, m, Z, rgb,
+            )  # fmt: skip
         ctx.cfg = cfg
         ctx.arrays = (fd, bin_off, bin_f, attr_np, uvs_np, tex_np, P, m, Z, rgb)
         ctx.shapes = (fv.shape, fv.dtype)
@@ -145,16 +171,17 @@ class _SoftRasterize(torch.autograd.Function):
             gr = np.zeros((B, H, W, max(C, 1)) if cfg.mode != K.MODE_SILHOUETTE else (1, 1, 1, 1))
         else:
             gr = _np64(g_rgb, ())
-        nch = max(1, min(numba.get_num_threads(), bin_off.shape[0] - 1))
-        g_fv = np.zeros((nch, B, F, 3, 3))
-        g_attr = np.zeros((nch, *attr_np.shape)) if need_attr else np.zeros((nch, 1, 1, 3, 1))
-        g_uv = np.zeros((nch, *uvs_np.shape)) if need_uv else np.zeros((nch, 1, 1, 3, 2))
-        g_tex = np.zeros((nch, *tex_np.shape)) if need_tex else np.zeros((nch, 1, 1, 1))
-        K.soft_backward(
-            fd, bin_off, bin_f, H, W, s.tile_size, cfg.margin, cfg.cutoff, s.sigma,
-            1.0 / s.gamma, s.znear, s.zfar, cfg.mode, attr_np, uvs_np, tex_np, P, m, Z, rgb,
-            ga, gr, need_attr, need_uv, need_tex, g_fv, g_attr, g_uv, g_tex,
-        )  # fmt: skip
+        with _threads(_work(bin_f, s.tile_size)) as nthreads:
+            nch = max(1, min(nthreads, bin_off.shape[0] - 1))  # one gradient buffer per chunk
+            g_fv = np.zeros((nch, B, F, 3, 3))
+            g_attr = np.zeros((nch, *attr_np.shape)) if need_attr else np.zeros((nch, 1, 1, 3, 1))
+            g_uv = np.zeros((nch, *uvs_np.shape)) if need_uv else np.zeros((nch, 1, 1, 3, 2))
+            g_tex = np.zeros((nch, *tex_np.shape)) if need_tex else np.zeros((nch, 1, 1, 1))
+            K.soft_backward(
+                fd, bin_off, bin_f, H, W, s.tile_size, cfg.margin, cfg.cutoff, s.sigma,
+                1.0 / s.gamma, s.znear, s.zfar, cfg.mode, attr_np, uvs_np, tex_np, P, m, Z, rgb,
+                ga, gr, need_attr, need_uv, need_tex, g_fv, g_attr, g_uv, g_tex,
+            )  # fmt: skip
         out_fv = torch.from_numpy(g_fv.sum(0)).to(dtype) if ctx.needs_input_grad[0] else None
         out_attr = torch.from_numpy(g_attr.sum(0)).to(dtype) if need_attr else None
         out_uv = torch.from_numpy(g_uv.sum(0)).to(dtype) if need_uv else None
@@ -275,9 +302,11 @@ def _prepare(verts, faces, camera, settings, coords):
     dtype = v.dtype
     cam = camera.to(dtype) if camera.dtype != dtype else camera
     vb3 = v if v.ndim == 3 else v.unsqueeze(0)
-    pc = (cam.world_to_camera(v) if cb is not None else cam.world_to_camera(vb3)) if (
-        coords == "world"
-    ) else vb3
+    pc = (
+        (cam.world_to_camera(v) if cb is not None else cam.world_to_camera(vb3))
+        if (coords == "world")
+        else vb3
+    )
     if pc.ndim == 2:
         pc = pc.unsqueeze(0)
     pc = pc.expand(B, *pc.shape[-2:]) if pc.shape[0] != B else pc
