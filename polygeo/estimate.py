@@ -192,8 +192,7 @@ def _neg_largest(x, y, z):
     return z < 0.0
 
 
-@nb.njit(cache=True, parallel=True)
-def _frames_kernel(P, qidx, nbr, dist, kuse, uv, z, valid, R, count, radius):
+def _frames_py(P, qidx, nbr, dist, kuse, uv, z, valid, R, count, radius):
     """Local PCA frames and height coordinates of each query's neighbourhood.
 
     P (N,3) f64 points; qidx (Q,) query point indices; nbr/dist (Q,K) neighbours (nearest
@@ -313,8 +312,7 @@ def _frames_kernel(P, qidx, nbr, dist, kuse, uv, z, valid, R, count, radius):
                 z[i, j] = 0.0
 
 
-@nb.njit(cache=True, parallel=True)
-def _origin_geometry_kernel(coef, R, normal, d1, d2, kk):
+def _origin_geometry_py(coef, R, normal, d1, d2, kk):
     """Normal, principal directions and curvatures of jets at (u, v) = 0, in world axes.
 
     coef (Q,M) jets coefficients (M >= 3); R (Q,3,3) local-to-world rotations. Outputs
@@ -376,6 +374,15 @@ def _origin_geometry_kernel(coef, R, normal, d1, d2, kk):
         kk[i, 3] = a * c - b * b
 
 
+# Parallel variants for large chunks; serial ones avoid the thread-pool start-up cost (which
+# dominates on small chunks, especially on a busy machine).
+_frames_par = nb.njit(cache=True, parallel=True)(_frames_py)
+_frames_ser = nb.njit(cache=True)(_frames_py)
+_origin_geometry_par = nb.njit(cache=True, parallel=True)(_origin_geometry_py)
+_origin_geometry_ser = nb.njit(cache=True)(_origin_geometry_py)
+_PARALLEL_MIN = 4096
+
+
 # ----------------------------------------------------------------------------- helpers
 
 
@@ -391,7 +398,8 @@ class _Local:
         self.count = np.zeros(Q, dtype=np.int64)
         self.radius = np.zeros(Q)
         if Q:
-            _frames_kernel(
+            kernel = _frames_par if Q >= _PARALLEL_MIN else _frames_ser
+            kernel(
                 P, qidx, nbr, dist, int(kuse), self.uv, self.z, self.valid, self.R, self.count,
                 self.radius,
             )
@@ -415,7 +423,8 @@ def _geometry(coeffs: np.ndarray, R: np.ndarray) -> dict[str, np.ndarray]:
     d2 = np.empty((Q, 3))
     kk = np.empty((Q, 4))
     if Q:
-        _origin_geometry_kernel(np.ascontiguousarray(coeffs), R, normal, d1, d2, kk)
+        kernel = _origin_geometry_par if Q >= _PARALLEL_MIN else _origin_geometry_ser
+        kernel(np.ascontiguousarray(coeffs), R, normal, d1, d2, kk)
     return {
         "normals": normal, "d1": d1, "d2": d2,
         "k1": kk[:, 0], "k2": kk[:, 1], "mean_curvature": kk[:, 2], "gaussian_curvature": kk[:, 3],
@@ -706,7 +715,8 @@ def differential_quantities(
             nbr, dist = r_idx[q], r_d[q]
         else:
             upper = np.inf if radius is None else np.nextafter(radius, np.inf) * (1 + 1e-12)
-            nbr, dist = index.query(P[q], kq, workers=workers, upper=upper, self_index=rep[q])
+            wk = workers if q.size >= _PARALLEL_MIN else 1
+            nbr, dist = index.query(P[q], kq, workers=wk, upper=upper, self_index=rep[q])
             if not deduped and nbr.shape[1] > 1 and bool((dist[:, 1] == 0).any()):
                 # exact duplicates: keep one copy per location in the tree, answer all copies
                 deduped = True
@@ -716,9 +726,7 @@ def differential_quantities(
                 index = PointIndex(Pt)
                 n_distinct = int((rep[finite] == np.flatnonzero(finite)).sum())
                 kq = min(kmax, max(n_distinct, 1))
-                nbr, dist = index.query(
-                    P[q], kq, workers=workers, upper=upper, self_index=rep[q]
-                )
+                nbr, dist = index.query(P[q], kq, workers=wk, upper=upper, self_index=rep[q])
         graph[q, : min(k_graph, nbr.shape[1])] = nbr[:, :k_graph]
         if use_torch:
             local = _Local(P, rep[q], nbr, dist, nbr.shape[1])
