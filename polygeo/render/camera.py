@@ -38,6 +38,15 @@ def _batch_of(t: torch.Tensor, core_ndim: int, name: str) -> int | None:
     )
 
 
+def _apply(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """``M @ p`` for points ``p`` (..., 3), as a broadcast product and sum (no BLAS call).
+
+    Tiny matrix products go through BLAS threads in torch, which is slow on a loaded
+    machine; the elementwise form stays on the calling thread for small inputs.
+    """
+    return (p.unsqueeze(-2) * M).sum(-1)
+
+
 @dataclass(frozen=True, eq=False)
 class Camera:
     """A pinhole camera (or a batch of ``B`` cameras) in the OpenCV convention.
@@ -206,14 +215,15 @@ class Camera:
         )
 
     def to(self, dtype: torch.dtype) -> Camera:
-        """The same camera with ``K``, ``R``, ``t`` cast to ``dtype``."""
-        return Camera(
-            K=self.K.to(dtype),
-            R=self.R.to(dtype),
-            t=self.t.to(dtype),
-            width=self.width,
-            height=self.height,
-        )
+        """The same camera with ``K``, ``R``, ``t`` cast to ``dtype`` (differentiably)."""
+        if not dtype.is_floating_point:
+            raise TypeError(f"dtype: expected a floating dtype, got {dtype}")
+        cam = object.__new__(Camera)  # already validated: skip __post_init__
+        for name in ("K", "R", "t"):
+            object.__setattr__(cam, name, getattr(self, name).to(dtype))
+        object.__setattr__(cam, "width", self.width)
+        object.__setattr__(cam, "height", self.height)
+        return cam
 
     # ------------------------------------------------------------------ transforms
     def _bcast(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -255,7 +265,7 @@ class Camera:
         p = as_tensor(points, "points", dtype=self.dtype)
         check_shape(p, "points", ("...", 3))
         R, t, _ = self._bcast(p)
-        out = (p.unsqueeze(-2) @ R.transpose(-1, -2)).squeeze(-2) + t
+        out = _apply(R, p) + t
         return to_like(out, like)
 
     def camera_to_world(self, points: Any) -> Any:
@@ -280,7 +290,7 @@ class Camera:
         p = as_tensor(points, "points", dtype=self.dtype)
         check_shape(p, "points", ("...", 3))
         R, t, _ = self._bcast(p)
-        out = ((p - t).unsqueeze(-2) @ R).squeeze(-2)
+        out = _apply(R.transpose(-1, -2), p - t)
         return to_like(out, like)
 
     def project_camera(self, points_cam: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -289,7 +299,7 @@ class Camera:
         z = points_cam[..., 2]
         tiny = torch.where(z < 0, -_TINY_DEPTH, _TINY_DEPTH).to(z.dtype)
         safe = torch.where(z.abs() < _TINY_DEPTH, tiny, z)
-        p = (points_cam.unsqueeze(-2) @ K.transpose(-1, -2)).squeeze(-2)
+        p = _apply(K, points_cam)
         uv = p[..., :2] / safe.unsqueeze(-1)
         return uv, z
 
