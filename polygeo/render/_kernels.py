@@ -34,7 +34,8 @@ _Z0, _Z1, _Z2 = 6, 7, 8
 _A, _INVA = 9, 10
 _XMIN, _XMAX, _YMIN, _YMAX = 11, 12, 13, 14
 _IL0 = 15  # 15, 16, 17: 1 / |edge k|², edge k from vertex k to vertex (k + 1) % 3
-NFD = 18
+_IZ0 = 18  # 18, 19, 20: 1 / z_k
+NFD = 21
 
 MODE_SILHOUETTE = 0
 MODE_VERTEX = 1
@@ -59,6 +60,9 @@ def face_setup(fv, znear, min_area2, cull_back, fd, valid):
             d = fd[b, f]
             d[_X0], d[_Y0], d[_X1], d[_Y1], d[_X2], d[_Y2] = x0, y0, x1, y1, x2, y2
             d[_Z0], d[_Z1], d[_Z2] = z0, z1, z2
+            d[_IZ0] = 1.0 / z0 if ok else 0.0
+            d[_IZ0 + 1] = 1.0 / z1 if ok else 0.0
+            d[_IZ0 + 2] = 1.0 / z2 if ok else 0.0
             d[_A] = A
             d[_INVA] = 1.0 / A if ok else 0.0
             d[_XMIN] = min(x0, x1, x2)
@@ -177,6 +181,18 @@ def _geometry(d, qx, qy):
 
 
 @njit(cache=True, inline="always")
+def _coverage(inside, d2, inv_sigma):
+    """``(D, 1 - D)`` for ``D = sigmoid(+-d2 / sigma)`` with a single exponential."""
+    if inside:
+        e = math.exp(-d2 * inv_sigma)
+        D = 1.0 / (1.0 + e)
+        return D, e * D
+    e = math.exp(-d2 * inv_sigma)
+    om = 1.0 / (1.0 + e)
+    return e * om, om
+
+
+@njit(cache=True, inline="always")
 def _clip_bary(w0, w1, w2):
     k0 = min(max(w0, 0.0), 1.0)
     k1 = min(max(w1, 0.0), 1.0)
@@ -277,8 +293,7 @@ def soft_forward(
                 for c in range(C):
                     acc[c] = bg[c]
                 for k in range(s0, s1):
-                    f = bin_f[k]
-                    d = fd[b, f]
+                    d = fd[b, bin_f[k]]
                     if (
                         qx < d[_XMIN] - margin
                         or qx > d[_XMAX] + margin
@@ -289,15 +304,15 @@ def soft_forward(
                     w0, w1, w2, inside, d2, _k, _t, _rx, _ry = _geometry(d, qx, qy)
                     if not inside and d2 > cutoff:
                         continue
-                    x = d2 * inv_sigma if inside else -d2 * inv_sigma
-                    D = 1.0 / (1.0 + math.exp(-x))
-                    P *= 1.0 / (1.0 + math.exp(x))
+                    D, omD = _coverage(inside, d2, inv_sigma)
+                    P *= omD
                     if mode == MODE_SILHOUETTE:
                         continue
+                    f = bin_f[k]
                     c0, c1, c2, _s = _clip_bary(w0, w1, w2)
-                    u0 = c0 / d[_Z0]
-                    u1 = c1 / d[_Z1]
-                    u2 = c2 / d[_Z2]
+                    u0 = c0 * d[_IZ0]
+                    u1 = c1 * d[_IZ0 + 1]
+                    u2 = c2 * d[_IZ0 + 2]
                     zp = 1.0 / (u0 + u1 + u2)
                     p0 = u0 * zp
                     p1 = u1 * zp
@@ -412,8 +427,7 @@ def soft_backward(
                         w0, w1, w2, inside, d2, kmin, tmin, rx, ry = _geometry(d, qx, qy)
                         if not inside and d2 > cutoff:
                             continue
-                        x = d2 * inv_sigma if inside else -d2 * inv_sigma
-                        D = 1.0 / (1.0 + math.exp(-x))
+                        D, omD = _coverage(inside, d2, inv_sigma)
                         gx = gaP * D
                         for r in range(3):
                             gv[r, 0] = 0.0
@@ -421,9 +435,9 @@ def soft_backward(
                             gv[r, 2] = 0.0
                         if any_rgb:
                             c0, c1, c2, s = _clip_bary(w0, w1, w2)
-                            iz0 = 1.0 / d[_Z0]
-                            iz1 = 1.0 / d[_Z1]
-                            iz2 = 1.0 / d[_Z2]
+                            iz0 = d[_IZ0]
+                            iz1 = d[_IZ0 + 1]
+                            iz2 = d[_IZ0 + 2]
                             u0 = c0 * iz0
                             u1 = c1 * iz1
                             u2 = c2 * iz2
@@ -474,7 +488,7 @@ def soft_backward(
                             for c in range(C):
                                 gdc += g_rgb[b, i, j, c] * col[c]
                             ga = (gdc - gdotI) * invZ
-                            gx += ga * ez * D * (1.0 - D)
+                            gx += ga * ez * D * omD
                             gzp = -ga * a * inv_gamma * inv_range
                             # p_i = u_i / U, zp = 1 / U
                             sp = gp0 * p0 + gp1 * p1 + gp2 * p2
