@@ -700,6 +700,10 @@ def differential_quantities(
     graph = np.full((n, k_graph), -1, dtype=np.int64)
     torch_parts: list[tuple[np.ndarray, Any, Any, Any]] = []
 
+    # visit the points in grid-cell order: neighbouring queries share neighbours (cache)
+    visit = index.spatial_order() if index is not None else None
+    if visit is None or visit.size != n:
+        visit = np.arange(n)
     chunks = range(0, n, batch_size)
     show = (n >= 200_000) if progress is None else bool(progress)
     if show:
@@ -707,7 +711,7 @@ def differential_quantities(
 
         chunks = tqdm(chunks, total=math.ceil(n / batch_size), desc="jets", unit="chunk")
     for start in chunks:
-        q = np.arange(start, min(n, start + batch_size))
+        q = visit[start : start + batch_size]
         q = q[finite[q]]
         if q.size == 0:
             continue

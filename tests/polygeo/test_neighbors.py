@@ -145,6 +145,7 @@ def test_mesh_k_ring_exclude_self_and_torch():
         (lambda: nb.knn(np.zeros((5, 3)), 2.5), TypeError),
         (lambda: nb.knn(np.zeros((5, 3)), 2, np.zeros((4, 4))), ValueError),
         (lambda: nb.knn(np.zeros((5, 3)), 2, workers=0), ValueError),
+        (lambda: nb.knn(np.zeros((5, 3)), 2, method="ball"), ValueError),
         (lambda: nb.knn(np.array([["a", "b", "c"]]), 1), TypeError),
         (lambda: nb.radius_neighbors(np.zeros((5, 3)), -1.0), ValueError),
         (lambda: nb.radius_neighbors(np.zeros((5, 3)), 1.0, max_neighbors=0), ValueError),
@@ -165,3 +166,31 @@ def test_empty_inputs():
     assert res.index.shape == (0, 3)
     ring = nb.mesh_k_ring(np.zeros((0, 3), dtype=int), 0)
     assert ring.index.shape[0] == 0
+
+
+@pytest.mark.parametrize("kind", ["volume", "surface", "outlier", "duplicates"])
+def test_grid_equals_kdtree(rng, kind):
+    if kind == "volume":
+        p = rng.random((3000, 3))
+    elif kind == "surface":
+        p = rng.normal(size=(3000, 3))
+        p /= np.linalg.norm(p, axis=1, keepdims=True)
+    elif kind == "outlier":
+        p = np.vstack([rng.random((3000, 3)), [[1e6, -1e6, 5e5]]])
+    else:
+        p = np.repeat(rng.random((500, 3)), 4, axis=0)
+    q = rng.random((200, 3)) * 1.2 - 0.1
+    for queries in (None, q):
+        g = nb.knn(p, 16, queries, method="grid")
+        t = nb.knn(p, 16, queries, method="kdtree")
+        np.testing.assert_allclose(g.distance, t.distance, rtol=1e-12)
+        if kind != "duplicates":
+            assert (g.index == t.index).mean() > 0.999
+        if queries is None:
+            assert (g.index[:, 0] == np.arange(len(p))).all()
+
+
+def test_grid_pads_when_few_points():
+    p = np.array([[0.0, 0, 0], [1, 0, 0], [np.nan, 0, 0]])
+    g = nb.knn(p, 4, method="grid")
+    assert (g.mask.sum(1) == [2, 2, 0]).all()
