@@ -32,86 +32,100 @@ def _ncoef(o):
     return (o + 1) * (o + 2) // 2
 
 
-@nb.njit(cache=True)
-def _build_normal(mom, ep, eq, m, N, D):
-    """Equilibrated normal matrix of the first m monomials; False if a diagonal is zero."""
-    for a in range(m):
-        d = mom[2 * ep[a], 2 * eq[a]]
-        if not d > 0.0:
-            return False
-        D[a] = 1.0 / math.sqrt(d)
-    for a in range(m):
-        for b in range(m):
-            N[a, b] = mom[ep[a] + ep[b], eq[a] + eq[b]] * D[a] * D[b]
-    return True
+def _make_small(mc: int):
+    """Small dense routines for an m x m system; ``mc > 0`` fixes m at compile time (unrolled)."""
 
-
-@nb.njit(cache=True)
-def _cholesky(N, L, m):
-    """Lower Cholesky factor of N[:m, :m] into L; False when not positive definite."""
-    for j in range(m):
-        s = N[j, j]
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
-        if not s > 0.0:
-            return False
-        ljj = math.sqrt(s)
-        L[j, j] = ljj
-        for i in range(j + 1, m):
-            t = N[i, j]
+    @nb.njit(cache=True, inline="always")
+    def factor(mom, ep, eq, mv, N, D, L, Ld, Linv):
+        """Equilibrate, factor and bound the condition; inf when singular / not PD."""
+        m = mc if mc > 0 else mv
+        for a in range(m):
+            d = mom[2 * ep[a], 2 * eq[a]]
+            if not d > 0.0:
+                return math.inf
+            D[a] = 1.0 / math.sqrt(d)
+        for a in range(m):
+            N[a, a] = 1.0
+            for b in range(a):
+                t = mom[ep[a] + ep[b], eq[a] + eq[b]] * D[a] * D[b]
+                N[a, b] = t
+                N[b, a] = t
+        # Cholesky N = L L^T (Ld: reciprocal diagonal)
+        for j in range(m):
+            s = N[j, j]
             for k in range(j):
-                t -= L[i, k] * L[j, k]
-            L[i, j] = t / ljj
-        for i in range(j):
-            L[i, j] = 0.0
-    return True
+                s -= L[j, k] * L[j, k]
+            if not s > 0.0:
+                return math.inf
+            ljj = math.sqrt(s)
+            L[j, j] = ljj
+            r = 1.0 / ljj
+            Ld[j] = r
+            for i in range(j + 1, m):
+                t = N[i, j]
+                for k in range(j):
+                    t -= L[i, k] * L[j, k]
+                L[i, j] = t * r
+        # sqrt(||N||_F) ||L^{-1}||_F >= sqrt(cond_2(N)), within a factor sqrt(m)
+        nf = 0.0
+        lf = 0.0
+        for j in range(m):
+            Linv[j, j] = Ld[j]
+            lf += Ld[j] * Ld[j]
+            for i in range(j + 1, m):
+                t = 0.0
+                for k in range(j, i):
+                    t -= L[i, k] * Linv[k, j]
+                t *= Ld[i]
+                Linv[i, j] = t
+                lf += t * t
+            for i in range(m):
+                nf += N[i, j] * N[i, j]
+        c = math.sqrt(math.sqrt(nf) * lf)
+        if not c < math.inf:
+            c = math.inf
+        return c
 
-
-@nb.njit(cache=True)
-def _chol_solve(L, m, b, x):
-    """Solve L L^T x = b (first m entries)."""
-    for i in range(m):
-        s = b[i]
-        for k in range(i):
-            s -= L[i, k] * x[k]
-        x[i] = s / L[i, i]
-    for i in range(m - 1, -1, -1):
-        s = x[i]
-        for k in range(i + 1, m):
-            s -= L[k, i] * x[k]
-        x[i] = s / L[i, i]
-
-
-@nb.njit(cache=True)
-def _cond1(N, L, m, Linv):
-    """sqrt(||N||_1 ||N^{-1}||_1) with N^{-1} = L^{-T} L^{-1}."""
-    for j in range(m):
+    @nb.njit(cache=True, inline="always")
+    def solve(L, Ld, mv, b, x):
+        """Solve L L^T x = b."""
+        m = mc if mc > 0 else mv
         for i in range(m):
-            Linv[i, j] = 0.0
-        Linv[j, j] = 1.0 / L[j, j]
-        for i in range(j + 1, m):
-            s = 0.0
-            for k in range(j, i):
-                s -= L[i, k] * Linv[k, j]
-            Linv[i, j] = s / L[i, i]
-    n1 = 0.0
-    i1 = 0.0
-    for j in range(m):
-        cn = 0.0
-        ci = 0.0
-        for i in range(m):
-            cn += abs(N[i, j])
-            # (L^{-T} L^{-1})[i, j] = sum_k Linv[k, i] Linv[k, j], k >= max(i, j)
-            s = 0.0
-            for k in range(max(i, j), m):
-                s += Linv[k, i] * Linv[k, j]
-            ci += abs(s)
-        n1 = max(n1, cn)
-        i1 = max(i1, ci)
-    c = math.sqrt(n1 * i1)
-    if not c < math.inf:
-        c = math.inf
-    return c
+            s = b[i]
+            for k in range(i):
+                s -= L[i, k] * x[k]
+            x[i] = s * Ld[i]
+        for i in range(m - 1, -1, -1):
+            s = x[i]
+            for k in range(i + 1, m):
+                s -= L[k, i] * x[k]
+            x[i] = s * Ld[i]
+
+    return factor, solve
+
+
+_factor_any, _solve_any = _make_small(0)
+_factor3, _solve3 = _make_small(3)
+_factor6, _solve6 = _make_small(6)
+
+
+@nb.njit(cache=True, inline="always")
+def _factor(mom, ep, eq, m, N, D, L, Ld, Linv):
+    if m == 6:
+        return _factor6(mom, ep, eq, m, N, D, L, Ld, Linv)
+    if m == 3:
+        return _factor3(mom, ep, eq, m, N, D, L, Ld, Linv)
+    return _factor_any(mom, ep, eq, m, N, D, L, Ld, Linv)
+
+
+@nb.njit(cache=True, inline="always")
+def _solve(L, Ld, m, b, x):
+    if m == 6:
+        _solve6(L, Ld, m, b, x)
+    elif m == 3:
+        _solve3(L, Ld, m, b, x)
+    else:
+        _solve_any(L, Ld, m, b, x)
 
 
 @nb.njit(cache=True)
@@ -135,9 +149,159 @@ def _rank(mom, ep, eq, m, max_cond):
     return r
 
 
+@nb.njit(cache=True, inline="always")
+def _is_valid(uv, z, w, has_w, mask, has_mask, b, k):
+    if has_mask and not mask[b, k]:
+        return False
+    u = uv[b, k, 0]
+    v = uv[b, k, 1]
+    zz = z[b, k]
+    # NaN fails every comparison; inf fails the bound
+    if not (abs(u) < math.inf and abs(v) < math.inf and abs(zz) < math.inf):
+        return False
+    if has_w and not w[b, k] > 0.0:
+        return False
+    return True
+
+
+@nb.njit(cache=True, inline="always")
+def _moments(uv, z, w, has_w, ok, b, K, ih, mom, rhs, pu, pv, n2, M, ep, eq):
+    """Weighted moments sum w su^p sv^q (p + q <= n2) and right-hand side, any order."""
+    for p in range(n2 + 1):
+        for q in range(n2 + 1):
+            mom[p, q] = 0.0
+    for j in range(M):
+        rhs[j] = 0.0
+    for k in range(K):
+        if not ok[k]:
+            continue
+        su = uv[b, k, 0] * ih
+        sv = uv[b, k, 1] * ih
+        pu[0] = w[b, k] if has_w else 1.0
+        pv[0] = 1.0
+        for p in range(1, n2 + 1):
+            pu[p] = pu[p - 1] * su
+            pv[p] = pv[p - 1] * sv
+        for p in range(n2 + 1):
+            for q in range(n2 + 1 - p):
+                mom[p, q] += pu[p] * pv[q]
+        zk = z[b, k]
+        for j in range(M):
+            rhs[j] += zk * pu[ep[j]] * pv[eq[j]]
+
+
+@nb.njit(cache=True, inline="always")
+def _moments2(uv, z, w, has_w, ok, b, K, ih, mom, rhs):
+    """Unrolled moments of a 2-jet (degree <= 4) and its right-hand side."""
+    m00 = m10 = m01 = m20 = m11 = m02 = 0.0
+    m30 = m21 = m12 = m03 = m40 = m31 = m22 = m13 = m04 = 0.0
+    r0 = r1 = r2 = r3 = r4 = r5 = 0.0
+    for k in range(K):
+        if not ok[k]:
+            continue
+        su = uv[b, k, 0] * ih
+        sv = uv[b, k, 1] * ih
+        wk = w[b, k] if has_w else 1.0
+        wu = wk * su
+        wv = wk * sv
+        wuu = wu * su
+        wuv = wu * sv
+        wvv = wv * sv
+        m00 += wk
+        m10 += wu
+        m01 += wv
+        m20 += wuu
+        m11 += wuv
+        m02 += wvv
+        m30 += wuu * su
+        m21 += wuu * sv
+        m12 += wuv * sv
+        m03 += wvv * sv
+        m40 += wuu * su * su
+        m31 += wuu * su * sv
+        m22 += wuu * sv * sv
+        m13 += wuv * sv * sv
+        m04 += wvv * sv * sv
+        zk = z[b, k]
+        r0 += wk * zk
+        r1 += wu * zk
+        r2 += wv * zk
+        r3 += wuu * zk
+        r4 += wuv * zk
+        r5 += wvv * zk
+    mom[0, 0] = m00
+    mom[1, 0] = m10
+    mom[0, 1] = m01
+    mom[2, 0] = m20
+    mom[1, 1] = m11
+    mom[0, 2] = m02
+    mom[3, 0] = m30
+    mom[2, 1] = m21
+    mom[1, 2] = m12
+    mom[0, 3] = m03
+    mom[4, 0] = m40
+    mom[3, 1] = m31
+    mom[2, 2] = m22
+    mom[1, 3] = m13
+    mom[0, 4] = m04
+    rhs[0] = r0
+    rhs[1] = r1
+    rhs[2] = r2
+    rhs[3] = r3
+    rhs[4] = r4
+    rhs[5] = r5
+
+
+@nb.njit(cache=True, inline="always")
+def _residual(uv, z, w, has_w, ok, b, K, ih, x, m, o, pu, pv, ep, eq):
+    """Weighted sum of squared residuals and of weights, any order."""
+    sw = 0.0
+    sr = 0.0
+    for k in range(K):
+        if not ok[k]:
+            continue
+        su = uv[b, k, 0] * ih
+        sv = uv[b, k, 1] * ih
+        pu[0] = 1.0
+        pv[0] = 1.0
+        for p in range(1, o + 1):
+            pu[p] = pu[p - 1] * su
+            pv[p] = pv[p - 1] * sv
+        r = z[b, k]
+        for j in range(m):
+            r -= x[j] * pu[ep[j]] * pv[eq[j]]
+        wk = w[b, k] if has_w else 1.0
+        sw += wk
+        sr += wk * r * r
+    return sr, sw
+
+
+@nb.njit(cache=True, inline="always")
+def _residual2(uv, z, w, has_w, ok, b, K, ih, x, m):
+    """Unrolled residual of a jet of order <= 2 (m <= 6 coefficients, zero-padded)."""
+    x0 = x[0]
+    x1 = x[1] if m > 1 else 0.0
+    x2 = x[2] if m > 2 else 0.0
+    x3 = x[3] if m > 3 else 0.0
+    x4 = x[4] if m > 4 else 0.0
+    x5 = x[5] if m > 5 else 0.0
+    sw = 0.0
+    sr = 0.0
+    for k in range(K):
+        if not ok[k]:
+            continue
+        su = uv[b, k, 0] * ih
+        sv = uv[b, k, 1] * ih
+        r = z[b, k] - (x0 + su * (x1 + x3 * su + x4 * sv) + sv * (x2 + x5 * sv))
+        wk = w[b, k] if has_w else 1.0
+        sw += wk
+        sr += wk * r * r
+    return sr, sw
+
+
 @nb.njit(cache=True, parallel=True)
-def _fit_kernel(uv, z, w, valid, scale, has_scale, order, fallback, max_cond, refine, ep, eq,
-                coeffs, fitted, status, cond, resid, hout, count, rank):
+def _fit_kernel(uv, z, w, has_w, mask, has_mask, scale, has_scale, order, fallback, max_cond,
+                refine_above, ep, eq, coeffs, fitted, status, cond, resid, hout, count, rank):
     B = uv.shape[0]
     K = uv.shape[1]
     M = _ncoef(order)
@@ -152,15 +316,19 @@ def _fit_kernel(uv, z, w, valid, scale, has_scale, order, fallback, max_cond, re
         L = np.empty((M, M))
         Linv = np.empty((M, M))
         D = np.empty(M)
+        Ld = np.empty(M)
         x = np.empty(M)
         g = np.empty(M)
         y = np.empty(M)
+        ok = np.empty(K, dtype=np.bool_)
         for b in range(c * _CHUNK, min(B, (c + 1) * _CHUNK)):
-            # scale and count
+            # validity, count and scale
             cnt = 0
             hmax = 0.0
             for k in range(K):
-                if valid[b, k]:
+                vk = _is_valid(uv, z, w, has_w, mask, has_mask, b, k)
+                ok[k] = vk
+                if vk:
                     cnt += 1
                     r2 = uv[b, k, 0] * uv[b, k, 0] + uv[b, k, 1] * uv[b, k, 1]
                     if r2 > hmax:
@@ -171,28 +339,10 @@ def _fit_kernel(uv, z, w, valid, scale, has_scale, order, fallback, max_cond, re
                 h = math.sqrt(hmax) if hmax > 0.0 else 1.0
             ih = 1.0 / h
             # weighted moments of the preconditioned parameters
-            for p in range(n2 + 1):
-                for q in range(n2 + 1):
-                    mom[p, q] = 0.0
-            for j in range(M):
-                rhs[j] = 0.0
-            for k in range(K):
-                if not valid[b, k]:
-                    continue
-                su = uv[b, k, 0] * ih
-                sv = uv[b, k, 1] * ih
-                wk = w[b, k]
-                pu[0] = wk
-                pv[0] = 1.0
-                for p in range(1, n2 + 1):
-                    pu[p] = pu[p - 1] * su
-                    pv[p] = pv[p - 1] * sv
-                for p in range(n2 + 1):
-                    for q in range(n2 + 1 - p):
-                        mom[p, q] += pu[p] * pv[q]
-                zk = z[b, k]
-                for j in range(M):
-                    rhs[j] += zk * pu[ep[j]] * pv[eq[j]]
+            if order == 2:
+                _moments2(uv, z, w, has_w, ok, b, K, ih, mom, rhs)
+            else:
+                _moments(uv, z, w, has_w, ok, b, K, ih, mom, rhs, pu, pv, n2, M, ep, eq)
             # solve, falling back to lower orders
             o = order
             st = _OK
@@ -206,23 +356,23 @@ def _fit_kernel(uv, z, w, valid, scale, has_scale, order, fallback, max_cond, re
                     break
                 m = _ncoef(o)
                 success = False
+                cc = math.inf
                 if cnt >= m:
-                    if _build_normal(mom, ep, eq, m, N, D) and _cholesky(N, L, m):
-                        cc = _cond1(N, L, m, Linv)
-                        if o == order:
-                            creq = cc
-                        success = cc <= max_cond
+                    cc = _factor(mom, ep, eq, m, N, D, L, Ld, Linv)
+                    success = cc <= max_cond
+                if o == order:
+                    creq = cc
                 if success:
                     for j in range(m):
                         g[j] = D[j] * rhs[j]
-                    _chol_solve(L, m, g, y)
+                    _solve(L, Ld, m, g, y)
                     for j in range(m):
                         x[j] = D[j] * y[j]
-                    if refine:
+                    if cc > refine_above:
                         for j in range(m):
                             g[j] = 0.0
                         for k in range(K):
-                            if not valid[b, k]:
+                            if not ok[k]:
                                 continue
                             su = uv[b, k, 0] * ih
                             sv = uv[b, k, 1] * ih
@@ -234,12 +384,13 @@ def _fit_kernel(uv, z, w, valid, scale, has_scale, order, fallback, max_cond, re
                             r = z[b, k]
                             for j in range(m):
                                 r -= x[j] * pu[ep[j]] * pv[eq[j]]
-                            r *= w[b, k]
+                            if has_w:
+                                r *= w[b, k]
                             for j in range(m):
                                 g[j] += r * pu[ep[j]] * pv[eq[j]]
                         for j in range(m):
                             g[j] *= D[j]
-                        _chol_solve(L, m, g, y)
+                        _solve(L, Ld, m, g, y)
                         for j in range(m):
                             x[j] += D[j] * y[j]
                     st = _OK if o == order else _REDUCED
@@ -252,28 +403,18 @@ def _fit_kernel(uv, z, w, valid, scale, has_scale, order, fallback, max_cond, re
                     break
                 o -= 1
             # residual of the final fit
-            sw = 0.0
-            sr = 0.0
-            for k in range(K):
-                if not valid[b, k]:
-                    continue
-                su = uv[b, k, 0] * ih
-                sv = uv[b, k, 1] * ih
-                pu[0] = 1.0
-                pv[0] = 1.0
-                for p in range(1, order + 1):
-                    pu[p] = pu[p - 1] * su
-                    pv[p] = pv[p - 1] * sv
-                r = z[b, k]
-                for j in range(m):
-                    r -= x[j] * pu[ep[j]] * pv[eq[j]]
-                sw += w[b, k]
-                sr += w[b, k] * r * r
+            if m <= 6:
+                sr, sw = _residual2(uv, z, w, has_w, ok, b, K, ih, x, m)
+            else:
+                sr, sw = _residual(uv, z, w, has_w, ok, b, K, ih, x, m, o, pu, pv, ep, eq)
             resid[b] = math.sqrt(sr / sw) if sw > 0.0 else 0.0
             # unscale and store
+            pu[0] = 1.0
+            for p in range(1, order + 1):
+                pu[p] = pu[p - 1] * ih
             for j in range(M):
                 if j < m:
-                    coeffs[b, j] = x[j] * ih ** (ep[j] + eq[j])
+                    coeffs[b, j] = x[j] * pu[ep[j] + eq[j]]
                 else:
                     coeffs[b, j] = 0.0
             fitted[b] = o
@@ -284,47 +425,55 @@ def _fit_kernel(uv, z, w, valid, scale, has_scale, order, fallback, max_cond, re
             rank[b] = M if st == _OK else _rank(mom, ep, eq, M, max_cond)
 
 
-def fit_numba(uv, z, w, valid, s, order, fallback, max_cond, refine):
-    """Run the compiled kernel on torch inputs; return the tuple the torch backend returns."""
+def fit_numba(uv, z, w, mask, s, order, fallback, max_cond, refine_above):
+    """Run the compiled kernel on torch inputs; return the tuple the torch backend returns.
+
+    ``mask`` is the caller's bool mask or None; non-finite samples and zero weights are
+    excluded inside the kernel.
+    """
     from .jets import _exponents_np
 
     B, K = z.shape
-    uv_np = np.ascontiguousarray(uv.detach().cpu().numpy(), dtype=np.float64)
-    z_np = np.ascontiguousarray(z.detach().cpu().numpy(), dtype=np.float64)
-    valid_np = np.ascontiguousarray(valid.cpu().numpy())
-    if w is None:
-        w_np = np.ones((B, K))
-    else:
-        w_np = np.ascontiguousarray(w.detach().cpu().numpy(), dtype=np.float64)
+
+    def arr(t, dtype):
+        return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=dtype)
+
+    uv_np = arr(uv, np.float64)
+    z_np = arr(z, np.float64)
+    has_w = w is not None
+    w_np = arr(w, np.float64) if has_w else np.ones((1, 1))
+    has_mask = mask is not None
+    m_np = arr(mask, np.bool_) if has_mask else np.ones((1, 1), dtype=np.bool_)
     has_scale = s is not None
-    s_np = (np.ascontiguousarray(s.cpu().numpy(), dtype=np.float64) if has_scale
-            else np.ones(B))
+    s_np = arr(s, np.float64) if has_scale else np.ones(1)
     e = _exponents_np(order)
     ep = np.ascontiguousarray(e[:, 0])
     eq = np.ascontiguousarray(e[:, 1])
     M = len(e)
-    coeffs = np.zeros((B, M))
-    fitted = np.zeros(B, dtype=np.int64)
-    status = np.zeros(B, dtype=np.int64)
-    cond = np.zeros(B)
-    resid = np.zeros(B)
-    h = np.ones(B)
-    count = np.zeros(B, dtype=np.int64)
-    rank = np.zeros(B, dtype=np.int64)
+    coeffs = np.empty((B, M))
+    fitted = np.empty(B, dtype=np.int64)
+    status = np.empty(B, dtype=np.int64)
+    cond = np.empty(B)
+    resid = np.empty(B)
+    h = np.empty(B)
+    count = np.empty(B, dtype=np.int64)
+    rank = np.empty(B, dtype=np.int64)
     if B > 0:
-        _fit_kernel(uv_np, z_np, w_np, valid_np, s_np, has_scale, order, bool(fallback),
-                    float(max_cond), bool(refine), ep, eq, coeffs, fitted, status, cond, resid,
-                    h, count, rank)
+        _fit_kernel(uv_np, z_np, w_np, has_w, m_np, has_mask, s_np, has_scale, order,
+                    bool(fallback), float(max_cond), float(refine_above), ep, eq, coeffs, fitted,
+                    status, cond, resid, h, count, rank)
     out = [torch.from_numpy(a) for a in (coeffs, resid, rank, cond, h, status, fitted, count)]
     if not fallback:
         bad = np.nonzero(status != _OK)[0]
         if bad.size:
             # Minimum-norm solutions of the rare rank-deficient items, via the torch backend.
-            from .jets import _fit_torch_top
+            from .jets import _fit_torch_top, _valid_mask
 
-            sub = _fit_torch_top(uv[bad], z[bad], None if w is None else w[bad], valid[bad],
-                                 None if s is None else s[bad], order, False, max_cond, refine)
             bt = torch.from_numpy(bad)
+            wb = None if w is None else w[bt]
+            vb = _valid_mask(uv[bt], z[bt], wb, None if mask is None else mask[bt])
+            sub = _fit_torch_top(uv[bt], z[bt], wb, vb, None if s is None else s[bt], order,
+                                 False, max_cond, refine_above)
             out[0][bt] = sub[0].detach()
             out[1][bt] = sub[1].detach()
     return tuple(out)

@@ -105,8 +105,19 @@ class SurfaceGeometry:
         return SurfaceGeometry(**{k: sq(getattr(self, k)) for k in self.__dataclass_fields__})
 
 
-def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    return (a * b).sum(-1)
+def _comps(v: torch.Tensor):
+    """Contiguous components (x, y, z) of a (..., 3) tensor."""
+    return v.movedim(-1, 0).contiguous().unbind(0)
+
+
+def _cdot(a, b):
+    """Dot product of vectors given as 3-tuples of components."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _ccross(a, b):
+    """Cross product of vectors given as 3-tuples of components."""
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
 def _safe_sqrt(x: torch.Tensor) -> torch.Tensor:
@@ -163,32 +174,36 @@ def from_derivatives(xu, xv, xuu, xuv, xvv) -> SurfaceGeometry:
     (gradients stay finite at them).
     """
     xu, xv, xuu, xuv, xvv = _cat_vectors(xu, xv, xuu, xuv, xvv)
-    E, F, G = _dot(xu, xu), _dot(xu, xv), _dot(xv, xv)
-    nrm = torch.linalg.cross(xu, xv)
-    det = _dot(nrm, nrm)  # = E G - F^2, computed without cancellation
+    # Component-wise arithmetic on (...) fields: far fewer tiny reductions than (..., 3) ops.
+    u3, v3 = _comps(xu), _comps(xv)
+    E, F, G = _cdot(u3, u3), _cdot(u3, v3), _cdot(v3, v3)
+    nrm = _ccross(u3, v3)
+    det = _cdot(nrm, nrm)  # = E G - F^2, computed without cancellation
     valid = (det > _EPS_METRIC * E * G) & (E > 0) & (G > 0) & torch.isfinite(det)
     one = torch.ones_like(det)
+    zero = torch.zeros_like(det)
     dets = torch.where(valid, det, one)
-    n = nrm / dets.sqrt()[..., None]
-    n = torch.where(valid[..., None], n, torch.zeros_like(n))
-    L, Mm, N = _dot(xuu, n), _dot(xuv, n), _dot(xvv, n)
+    inv_sd = torch.where(valid, dets.rsqrt(), zero)
+    n3 = tuple(c * inv_sd for c in nrm)
+    L, Mm, N = _cdot(_comps(xuu), n3), _cdot(_comps(xuv), n3), _cdot(_comps(xvv), n3)
+    lead = det.shape
     jac = torch.stack([xu, xv], dim=-1)
-    metric = torch.stack([torch.stack([E, F], -1), torch.stack([F, G], -1)], -2)
-    second = torch.stack([torch.stack([L, Mm], -1), torch.stack([Mm, N], -1)], -2)
+    metric = torch.stack([E, F, F, G], -1).reshape(lead + (2, 2))
+    second = torch.stack([L, Mm, Mm, N], -1).reshape(lead + (2, 2))
     # Shape operator I^{-1} II.
-    inv = torch.stack([torch.stack([G, -F], -1), torch.stack([-F, E], -1)], -2) / dets[
-        ..., None, None
-    ]
-    shape_op = torch.where(valid[..., None, None], inv @ second, torch.zeros_like(second))
-    # Orthonormal tangent basis and the symmetric operator W in it.
-    Es = torch.where(valid, E, one)
-    su = Es.sqrt()
-    t1 = xu / su[..., None]
-    t2 = torch.linalg.cross(n, t1)
+    idet = torch.where(valid, 1.0 / dets, zero)
+    s11 = (G * L - F * Mm) * idet
+    s12 = (G * Mm - F * N) * idet
+    s21 = (E * Mm - F * L) * idet
+    s22 = (E * N - F * Mm) * idet
+    shape_op = torch.stack([s11, s12, s21, s22], -1).reshape(lead + (2, 2))
+    # Orthonormal tangent basis t1 = xu/|xu|, t2 = n x t1 and the symmetric operator W in it.
+    su = torch.where(valid, E, one).sqrt()
+    t1 = tuple(c / su for c in u3)
+    t2 = _ccross(n3, t1)
     c11 = su
-    c12 = _dot(xv, t1)
-    c22 = _dot(xv, t2)  # = sqrt(det) / |xu| > 0
-    c22 = torch.where(valid, c22, one)
+    c12 = _cdot(v3, t1)
+    c22 = torch.where(valid, _cdot(v3, t2), one)  # = sqrt(det) / |xu| > 0
     # C^{-1} = [[1/c11, -c12/(c11 c22)], [0, 1/c22]]
     i11, i12, i22 = 1.0 / c11, -c12 / (c11 * c22), 1.0 / c22
     a = i11 * i11 * L
@@ -198,36 +213,30 @@ def from_derivatives(xu, xv, xuu, xuv, xvv) -> SurfaceGeometry:
     hd = 0.5 * (a - c)
     r2 = hd * hd + b * b
     r = _safe_sqrt(r2)
-    k1 = m + r
-    k2 = m - r
     aniso = r2 > _EPS_UMBILIC * (m * m).clamp_min(1e-300)
-    xs = torch.where(aniso, hd, one)
-    ys = torch.where(aniso, b, torch.zeros_like(b))
-    theta = 0.5 * torch.atan2(ys, xs)
+    theta = 0.5 * torch.atan2(torch.where(aniso, b, zero), torch.where(aniso, hd, one))
     ct, st = torch.cos(theta), torch.sin(theta)
-    d1 = ct[..., None] * t1 + st[..., None] * t2
-    d2 = torch.linalg.cross(n, d1)
-    Kc = (a * c - b * b)
-    zero = torch.zeros_like(det)
+    d1 = tuple(ct * x + st * y for x, y in zip(t1, t2))
+    d2 = _ccross(n3, d1)
 
     def vz(t):
         return torch.where(valid, t, zero)
 
-    def vz3(t):
-        return torch.where(valid[..., None], t, torch.zeros_like(t))
+    def vz3(t3):
+        return torch.stack([vz(x) for x in t3], -1)
 
     return SurfaceGeometry(
         jacobian=jac,
         metric=metric,
         second_form=second,
-        normal=n,
+        normal=torch.stack(n3, -1),
         shape_operator=shape_op,
-        k1=vz(k1),
-        k2=vz(k2),
+        k1=vz(m + r),
+        k2=vz(m - r),
         d1=vz3(d1),
         d2=vz3(d2),
         mean_curvature=vz(m),
-        gaussian_curvature=vz(Kc),
+        gaussian_curvature=vz(a * c - b * b),
         valid=valid,
     )
 

@@ -16,9 +16,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import numpy as np
 import torch
 
-from ._validate import as_tensor, check_int, check_shape
+from ._validate import as_tensor, check_choice, check_int, check_shape
 
 __all__ = [
     "PCAFrame",
@@ -68,7 +69,8 @@ def _fix_sign(v: torch.Tensor) -> torch.Tensor:
     return torch.where(s < 0, -v, v)
 
 
-def pca_frames(points, mask=None, weights=None, center=None, *, reference_normal=None):
+def pca_frames(points, mask=None, weights=None, center=None, *, reference_normal=None,
+               backend: str = "auto"):
     """Batched PCA frames of point neighbourhoods.
 
     Parameters
@@ -85,6 +87,9 @@ def pca_frames(points, mask=None, weights=None, center=None, *, reference_normal
     reference_normal : array_like or torch.Tensor, optional
         ``(B, 3)`` directions: ``e3`` is flipped (with ``e2``) to have a non-negative dot
         product with them.
+    backend : {"auto", "torch", "numba"}
+        "torch" is differentiable; "numba" (compiled, per-item Jacobi eigen-solver) is much
+        faster; "auto" uses torch when a gradient is required, else numba.
 
     Returns
     -------
@@ -107,36 +112,70 @@ def pca_frames(points, mask=None, weights=None, center=None, *, reference_normal
     collinear points give ``e1`` along the line and a deterministic completion. Differentiable
     (through ``torch.linalg.eigh``) away from repeated eigenvalues.
     """
+    check_choice(backend, "backend", ("auto", "torch", "numba"))
     numpy_in = not isinstance(points, torch.Tensor)
     p = as_tensor(points, "points")
     check_shape(p, "points", ("B", "K", 3))
     B, K, _ = p.shape
-    valid = torch.isfinite(p).all(-1)
+    m = None
     if mask is not None:
         m = as_tensor(mask, "mask", floating=False)
         if m.dtype != torch.bool:
             raise TypeError(f"mask: expected a bool array, got dtype {m.dtype}")
         check_shape(m, "mask", (B, K))
-        valid = valid & m
-    w = valid.to(p.dtype)
+    wt = None
     if weights is not None:
         wt = as_tensor(weights, "weights").to(p.dtype)
         check_shape(wt, "weights", (B, K))
-        bad = (~torch.isfinite(wt.detach()) | (wt.detach() < 0)) & valid
+        used = torch.isfinite(p.detach()).all(-1) if m is None else (
+            torch.isfinite(p.detach()).all(-1) & m)
+        bad = (~torch.isfinite(wt.detach()) | (wt.detach() < 0)) & used
         if bool(bad.any()):
             raise ValueError(f"weights: expected finite values >= 0, got {int(bad.sum())} "
                              "negative or non-finite entries")
-        w = torch.where(valid, wt, torch.zeros_like(wt))
+    c = None
+    if center is not None:
+        c = as_tensor(center, "center").to(p.dtype)
+        check_shape(c, "center", (B, 3))
+    ref = None
+    if reference_normal is not None:
+        ref = as_tensor(reference_normal, "reference_normal").to(p.dtype)
+        check_shape(ref, "reference_normal", (B, 3))
+    if backend == "auto":
+        needs_grad = torch.is_grad_enabled() and any(
+            t is not None and t.requires_grad for t in (p, wt, c, ref))
+        backend = "torch" if needs_grad else "numba"
+    if backend == "numba":
+        from ._frames_numba import pca_frames_numba
+
+        def np64(t):
+            return None if t is None else t.detach().cpu().numpy().astype(np.float64, copy=False)
+
+        oc, oR, ol, on = pca_frames_numba(np64(p), np64(wt), None if m is None else m.numpy(),
+                                          np64(c), np64(ref))
+        out = PCAFrame(*(torch.from_numpy(a) for a in (oc, oR, ol, on)))
+        if p.dtype != torch.float64:
+            out = PCAFrame(*(t.to(p.dtype) for t in out[:3]), out.count)
+    else:
+        out = _pca_frames_torch(p, m, wt, c, ref)
+    if numpy_in:
+        out = PCAFrame(*(t.detach().cpu().numpy() for t in out))
+    return out
+
+
+def _pca_frames_torch(p, m, wt, c, ref) -> PCAFrame:
+    B = p.shape[0]
+    valid = torch.isfinite(p).all(-1)
+    if m is not None:
+        valid = valid & m
+    w = valid.to(p.dtype) if wt is None else torch.where(valid, wt, torch.zeros_like(wt))
     p0 = torch.where(valid[..., None], p, torch.zeros_like(p))
     sw = w.sum(-1)  # (B,)
     swc = torch.where(sw > 0, sw, torch.ones_like(sw))
-    if center is None:
+    if c is None:
         c = (w[..., None] * p0).sum(1) / swc[:, None]
-    else:
-        c = as_tensor(center, "center").to(p.dtype)
-        check_shape(c, "center", (B, 3))
     d = torch.where(valid[..., None], p0 - c[:, None, :], torch.zeros_like(p0))  # (B, K, 3)
-    cov = torch.einsum("bk,bki,bkj->bij", w, d, d) / swc[:, None, None]
+    cov = ((w[..., None] * d).transpose(1, 2) @ d) / swc[:, None, None]
     # Scale-free decomposition (unit trace) so that tiny or huge neighbourhoods behave alike.
     tr = torch.diagonal(cov, dim1=-2, dim2=-1).sum(-1)
     ok = tr > 0
@@ -148,18 +187,13 @@ def pca_frames(points, mask=None, weights=None, center=None, *, reference_normal
     lam = torch.where(ok[:, None], lam.clamp_min(0), torch.zeros_like(lam))
     e1 = _fix_sign(vec[..., :, 2])
     e3 = _fix_sign(vec[..., :, 0])
-    if reference_normal is not None:
-        ref = as_tensor(reference_normal, "reference_normal").to(p.dtype)
-        check_shape(ref, "reference_normal", (B, 3))
+    if ref is not None:
         flip = (e3 * ref).sum(-1, keepdim=True) < 0
         e3 = torch.where(flip, -e3, e3)
     e2 = torch.linalg.cross(e3, e1)
     R = torch.stack([e1, e2, e3], dim=-1)
     R = torch.where(ok[:, None, None], R, eye)
-    out = PCAFrame(c, R, lam, valid.sum(-1))
-    if numpy_in:
-        out = PCAFrame(*(t.detach().cpu().numpy() for t in out))
-    return out
+    return PCAFrame(c, R, lam, valid.sum(-1))
 
 
 # --------------------------------------------------------------------------------------------

@@ -159,14 +159,15 @@ def test_orientation_create_validates():
 # ---------------------------------------------------------------- PCA frames
 
 
-def test_pca_frame_of_tilted_plane_recovers_normal(gen):
+@pytest.mark.parametrize("backend", ["torch", "numba"])
+def test_pca_frame_of_tilted_plane_recovers_normal(gen, backend):
     B, K = 20, 40
     R = frames.random_rotation(B, gen)
     uv = torch.randn(B, K, 2, generator=gen, dtype=torch.float64) * torch.tensor([2.0, 1.0])
     local = torch.cat([uv, torch.zeros(B, K, 1, dtype=torch.float64)], -1)
     offset = 1e6 * torch.randn(B, 1, 3, generator=gen, dtype=torch.float64)
     pts = local @ R.transpose(-1, -2) + offset
-    f = frames.pca_frames(pts)
+    f = frames.pca_frames(pts, backend=backend)
     n_true = R[..., 2]
     cosang = (f.rotation[..., 2] * n_true).sum(-1).abs()
     assert (1 - cosang).max() < 1e-12
@@ -180,42 +181,44 @@ def test_pca_frame_of_tilted_plane_recovers_normal(gen):
     torch.testing.assert_close(f.centroid, pts.mean(1))
 
 
-def test_pca_frame_reference_normal_and_center(gen):
+@pytest.mark.parametrize("backend", ["torch", "numba"])
+def test_pca_frame_reference_normal_and_center(gen, backend):
     pts = torch.randn(3, 10, 3, generator=gen, dtype=torch.float64) * torch.tensor([1, 1, 0.01])
     ref = torch.tensor([[0, 0, -1.0], [0, 0, 1.0], [0, 0, -1.0]], dtype=torch.float64)
-    f = frames.pca_frames(pts, reference_normal=ref)
+    f = frames.pca_frames(pts, reference_normal=ref, backend=backend)
     assert ((f.rotation[..., 2] * ref).sum(-1) > 0).all()
     assert _is_rotation(f.rotation)
     c = torch.zeros(3, 3, dtype=torch.float64)
-    g = frames.pca_frames(pts, center=c)
+    g = frames.pca_frames(pts, center=c, backend=backend)
     torch.testing.assert_close(g.centroid, c)
 
 
-def test_pca_frame_mask_weights_and_degenerate(gen):
+@pytest.mark.parametrize("backend", ["torch", "numba"])
+def test_pca_frame_mask_weights_and_degenerate(gen, backend):
     pts = torch.randn(4, 12, 3, generator=gen, dtype=torch.float64)
     mask = torch.ones(4, 12, dtype=torch.bool)
     mask[0, 6:] = False
     pts_nan = pts.clone()
     pts_nan[1, 3] = float("nan")
     mask[1, 3] = False
-    a = frames.pca_frames(pts_nan, mask=mask)
+    a = frames.pca_frames(pts_nan, mask=mask, backend=backend)
     for b, k in ((0, slice(0, 6)), (1, [i for i in range(12) if i != 3])):
-        one = frames.pca_frames(pts[b : b + 1, k])
+        one = frames.pca_frames(pts[b : b + 1, k], backend=backend)
         torch.testing.assert_close(a.rotation[b], one.rotation[0])
         torch.testing.assert_close(a.eigenvalues[b], one.eigenvalues[0])
     # integer weights == duplicated points
     w = torch.randint(1, 4, (12,), generator=gen)
-    wf = frames.pca_frames(pts[2:3], weights=w[None].double())
+    wf = frames.pca_frames(pts[2:3], weights=w[None].double(), backend=backend)
     dup = frames.pca_frames(pts[2:3, torch.repeat_interleave(torch.arange(12), w)])
     torch.testing.assert_close(wf.rotation, dup.rotation)
     # degenerate: all points equal, and nothing valid -> identity frame, zero eigenvalues
     same = torch.ones(2, 5, 3, dtype=torch.float64)
-    d = frames.pca_frames(same, mask=torch.tensor([[True] * 5, [False] * 5]))
+    d = frames.pca_frames(same, mask=torch.tensor([[True] * 5, [False] * 5]), backend=backend)
     torch.testing.assert_close(d.rotation, torch.eye(3, dtype=torch.float64).expand(2, 3, 3))
     assert (d.eigenvalues == 0).all() and d.count.tolist() == [5, 0]
     # collinear: e1 along the line
     line = torch.linspace(-1, 1, 7, dtype=torch.float64)[:, None] * torch.tensor([1.0, 2, 2]) / 3
-    c = frames.pca_frames(line[None])
+    c = frames.pca_frames(line[None], backend=backend)
     torch.testing.assert_close(c.rotation[0, :, 0], torch.tensor([1.0, 2, 2]).double() / 3)
     assert _is_rotation(c.rotation)
 
@@ -229,6 +232,29 @@ def test_pca_frames_numpy_and_batched(rng):
         np.testing.assert_allclose(f.rotation[b], one.rotation[0], atol=1e-12)
 
 
+def test_pca_backends_agree(gen):
+    B, K = 200, 15
+    pts = torch.randn(B, K, 3, generator=gen, dtype=torch.float64) * torch.tensor([3.0, 1.0, 0.2])
+    pts = pts @ frames.random_rotation(B, gen).transpose(-1, -2) + 100.0
+    mask = torch.rand(B, K, generator=gen) > 0.3
+    w = torch.rand(B, K, generator=gen, dtype=torch.float64)
+    ref = torch.randn(B, 3, generator=gen, dtype=torch.float64)
+    ctr = pts[:, 0]
+    pts[0] = 1.0  # degenerate item
+    for kw in ({}, {"mask": mask}, {"weights": w, "reference_normal": ref}, {"center": ctr}):
+        a = frames.pca_frames(pts, backend="torch", **kw)
+        b = frames.pca_frames(pts, backend="numba", **kw)
+        torch.testing.assert_close(a.rotation, b.rotation, rtol=0, atol=1e-9)
+        torch.testing.assert_close(a.eigenvalues, b.eigenvalues, rtol=1e-9, atol=1e-12)
+        torch.testing.assert_close(a.centroid, b.centroid)
+        assert torch.equal(a.count, b.count)
+    f32 = frames.pca_frames(pts.float(), backend="numba")
+    assert f32.rotation.dtype == torch.float32
+    # auto picks the differentiable path when needed
+    g = frames.pca_frames(pts[:3].clone().requires_grad_(True))
+    assert g.rotation.requires_grad
+
+
 def test_pca_frames_validators():
     with pytest.raises(ValueError, match="points"):
         frames.pca_frames(torch.zeros(2, 5, 2))
@@ -238,3 +264,5 @@ def test_pca_frames_validators():
         frames.pca_frames(torch.zeros(2, 5, 3), weights=-torch.ones(2, 5))
     with pytest.raises(ValueError, match="center"):
         frames.pca_frames(torch.zeros(2, 5, 3), center=torch.zeros(3))
+    with pytest.raises(ValueError, match="backend"):
+        frames.pca_frames(torch.zeros(2, 5, 3), backend="gpu")
