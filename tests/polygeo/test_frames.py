@@ -255,6 +255,17 @@ def test_pca_backends_agree(gen):
     assert g.rotation.requires_grad
 
 
+def test_gradcheck_pca_frames(gen):
+    pts = (torch.randn(2, 8, 3, generator=gen, dtype=torch.float64)
+           * torch.tensor([2.0, 1.0, 0.3])).requires_grad_(True)
+
+    def f(p):
+        fr = frames.pca_frames(p, backend="torch")
+        return fr.rotation, fr.eigenvalues, fr.centroid
+
+    assert torch.autograd.gradcheck(f, (pts,))
+
+
 def test_pca_frames_validators():
     with pytest.raises(ValueError, match="points"):
         frames.pca_frames(torch.zeros(2, 5, 2))
