@@ -154,11 +154,15 @@ def height_residual(
     mask: torch.Tensor,
     rotation: torch.Tensor | None,
     order: int,
+    *,
+    method: str = "envelope",
 ) -> tuple[torch.Tensor, jets.JetFit]:
     """RMS height residual of the n-jet fit after rotating canonical points.
 
     The rotated points are ``y = Q^T x`` (``Q`` = ``rotation``, the refined frame's axes in
-    the canonical frame); the jet ``z(u, v)`` is fitted to ``(y_1, y_2) -> y_3``.
+    the canonical frame); the jet ``z(u, v)`` is fitted to ``(y_1, y_2) -> y_3`` by least
+    squares and the residual is ``sqrt(mean_i (y_3,i - z(y_1,i, y_2,i))^2)`` over the valid
+    points.
 
     Parameters
     ----------
@@ -170,18 +174,44 @@ def height_residual(
         ``(B, 3, 3)`` refinement rotations (None: identity).
     order : int
         Jet order in ``[1, 6]``.
+    method : {"envelope", "exact"}
+        How the gradient reaches ``local`` and ``rotation``. ``"exact"`` differentiates
+        through the least-squares solve (:func:`polygeo.jets.fit`, torch backend).
+        ``"envelope"`` (default, several times cheaper) solves without a graph and
+        differentiates ``|y_3 - A(y_1, y_2) c|`` with the optimal ``c`` held fixed: by the
+        envelope theorem this is the same gradient wherever the fit is well posed (the
+        derivative of a minimum w.r.t. a parameter is the partial derivative at the
+        minimiser).
 
     Returns
     -------
     residual : torch.Tensor
-        ``(B,)`` float64 RMS height residual in canonical units (differentiable w.r.t.
-        ``local`` and ``rotation`` through the least-squares solve).
+        ``(B,)`` float64 RMS height residual in canonical units, differentiable w.r.t.
+        ``local`` and ``rotation``.
     fit : polygeo.jets.JetFit
         The fit, in the rotated frame.
+
+    Raises
+    ------
+    ValueError
+        On a bad ``method`` or ``order``.
     """
+    if method not in ("envelope", "exact"):
+        raise ValueError(f"method: expected one of ['envelope', 'exact'], got {method!r}")
     y = local if rotation is None else local @ rotation.to(local.dtype)
-    f = jets.fit(y[..., :2], y[..., 2], order, mask=mask, backend="torch")
-    return f.residual, f
+    if method == "exact":
+        f = jets.fit(y[..., :2], y[..., 2], order, mask=mask, backend="torch")
+        return f.residual, f
+    with torch.no_grad():
+        f = jets.fit(y[..., :2].detach(), y[..., 2].detach(), order, mask=mask)
+    y64 = y.to(torch.float64)
+    uv = torch.where(mask[..., None], y64[..., :2], torch.zeros_like(y64[..., :2]))
+    pred = (jets.monomials(uv, order) * f.coeffs.to(torch.float64)[:, None, :]).sum(-1)
+    r = torch.where(mask, y64[..., 2] - pred, torch.zeros_like(pred))
+    n = mask.sum(-1).clamp_min(1).to(torch.float64)
+    ms = (r * r).sum(-1) / n
+    safe = torch.where(ms > 0, ms, torch.ones_like(ms))
+    return torch.where(ms > 0, safe.sqrt(), torch.zeros_like(ms)), f
 
 
 # --------------------------------------------------------------------------------------------
@@ -498,8 +528,8 @@ class TrainConfig:
     order: int = 4
     mesh_share: float = 0.3
     noise: float = 0.02
-    widths: tuple[int, ...] = (64, 128, 256)
-    head: tuple[int, ...] = (128, 64)
+    widths: tuple[int, ...] = (32, 64, 128)
+    head: tuple[int, ...] = (64, 32)
     seed: int = 0
     n_val: int = 512
     eval_every: int = 100
@@ -786,8 +816,8 @@ def train_stn(
         loss.backward()
         opt.step()
         sched.step()
-        history["loss"].append(float(loss))
-        bar.set_postfix(loss=f"{float(loss):.4f}")
+        history["loss"].append(float(loss.detach()))
+        bar.set_postfix(loss=f"{float(loss.detach()):.4f}")
         done = step + 1
         if done % cfg.eval_every == 0 or done == cfg.steps:
             validate(done)

@@ -400,3 +400,24 @@ def test_bad_input(sphere5):
         ps.evaluate(np.array([0.0, 1.0]), np.zeros((2, 2)))
     with pytest.raises(ValueError, match="resolution"):
         ps.resample(-1)
+
+
+def test_surface_chamfer_matches_brute_force_point_to_triangle():
+    from polygeo.patches import _closest_on_triangles, _point_to_mesh_sq
+
+    rng = np.random.default_rng(0)
+    a, b, c = rng.normal(size=(3, 400, 3))
+    p = 2 * rng.normal(size=(400, 3))
+    q = trimesh.triangles.closest_point(np.stack([a, b, c], 1), p)
+    np.testing.assert_allclose(_closest_on_triangles(p, a, b, c), ((p - q) ** 2).sum(1),
+                               atol=1e-12)
+    s = syn.sphere_mesh(3)
+    pts = rng.normal(size=(200, 3)) * 0.3 + 0.8 * s.normals[:200]
+    m = trimesh.Trimesh(s.points, s.faces, process=False)
+    _, dist, _ = trimesh.proximity.closest_point(m, pts)
+    np.testing.assert_allclose(_point_to_mesh_sq(pts, s.points, s.faces), dist**2, atol=1e-12)
+    # the surface variant has no sampling floor: a surface against itself is ~0
+    assert chamfer_distance(s.points, s.faces, s.points, s.faces, mode="surface") < 1e-20
+    d = chamfer_distance(s.points, s.faces, 1.05 * s.points, s.faces, mode="surface")
+    # normalised by the reference's radius 1: every point is about 0.05 off, both ways
+    np.testing.assert_allclose(d, 2 * 0.05**2, rtol=0.05)
