@@ -183,8 +183,8 @@ def from_derivatives(xu, xv, xuu, xuv, xvv) -> SurfaceGeometry:
     one = torch.ones_like(det)
     zero = torch.zeros_like(det)
     dets = torch.where(valid, det, one)
-    inv_sd = torch.where(valid, dets.rsqrt(), zero)
-    n3 = tuple(c * inv_sd for c in nrm)
+    inv_sd = dets.rsqrt()
+    n3 = tuple(torch.where(valid, c * inv_sd, zero) for c in nrm)
     L, Mm, N = _cdot(_comps(xuu), n3), _cdot(_comps(xuv), n3), _cdot(_comps(xvv), n3)
     lead = det.shape
     jac = torch.stack([xu, xv], dim=-1)
@@ -394,7 +394,8 @@ class MongeForm:
     c : torch.Tensor
         ``(B, 5)`` fourth-order coefficients ``c0..c4`` (zeros unless ``has_quartic``).
     valid : torch.Tensor
-        ``(B,)`` bool (False only for non-finite input coefficients).
+        ``(B,)`` bool, False for non-finite input coefficients (then ``k``, ``b``, ``c``, the
+        frame vectors are zeros; ``origin`` may hold the non-finite height).
     order : int
         Order of the jet the form was computed from.
     """
@@ -513,7 +514,9 @@ def monge_form(coeffs, frame_rotation=None, frame_origin=None, at=None) -> Monge
         if dmax >= 4:
             cc = torch.stack([h[:, P.index[(4 - j, j)]] for j in range(5)], -1)
             cc = cc * torch.tensor([24.0, 6.0, 4.0, 6.0, 24.0], dtype=dtype)
-    valid = torch.isfinite(c).all(-1)
+    valid = torch.isfinite(c).all(-1) & geom.valid
+    b = torch.where(valid[:, None], b, torch.zeros_like(b))
+    cc = torch.where(valid[:, None], cc, torch.zeros_like(cc))
     k1, k2 = geom.k1, geom.k2
     origin = origin_local
     if frame_rotation is not None:

@@ -287,6 +287,16 @@ def test_monge_form_at_a_generic_point_describes_the_surface(gen):
     torch.testing.assert_close(m.origin, (R @ p_local[..., None])[..., 0] + o)
 
 
+def test_monge_form_nonfinite_coefficients_are_flagged():
+    c = _monge_coeffs(0.5, 0.1, (1, 2, 3, 4), (1, 2, 3, 4, 5)).repeat(2, 1)
+    c[1, 7] = float("nan")
+    m = diffgeo.monge_form(c)
+    assert m.valid.tolist() == [True, False]
+    for t in (m.k1, m.k2, m.b, m.c, m.d1, m.d2, m.normal):
+        assert torch.isfinite(t).all()
+    assert (m.b[1] == 0).all() and (m.k1[1] == 0)
+
+
 def test_monge_form_batched_equals_per_item(gen):
     coeffs = torch.randn(4, 15, generator=gen, dtype=torch.float64)
     at = 0.1 * torch.randn(4, 2, generator=gen, dtype=torch.float64)
