@@ -188,12 +188,14 @@ def monomials(uv, order: int) -> torch.Tensor:
     """
     order = _check_basis_order(order)
     t = _as_uv(uv)
-    e = _exponents_np(order)
-    pu = _powers(t[..., 0], order)
-    pv = _powers(t[..., 1], order)
-    ip = torch.from_numpy(e[:, 0].copy())
-    iq = torch.from_numpy(e[:, 1].copy())
-    return pu[..., ip] * pv[..., iq]
+    u, v = t[..., 0:1], t[..., 1:2]
+    # degree-i block [u^i, u^(i-1) v, ..., v^i] = [u * (degree i-1 block), v * v^(i-1)]
+    last = torch.ones_like(u)
+    blocks = [last]
+    for _ in range(order):
+        last = torch.cat([last * u, last[..., -1:] * v], dim=-1)
+        blocks.append(last)
+    return torch.cat(blocks, dim=-1)
 
 
 @cache
@@ -244,7 +246,7 @@ def monomial_derivatives(uv, order: int, du: int = 0, dv: int = 0) -> torch.Tens
     fac, sp, sq = _derivative_table(order, du, dv)
     pu = _powers(t[..., 0], order)
     pv = _powers(t[..., 1], order)
-    base = pu[..., torch.from_numpy(sp)] * pv[..., torch.from_numpy(sq)]
+    base = pu.index_select(-1, torch.from_numpy(sp)) * pv.index_select(-1, torch.from_numpy(sq))
     return base * torch.from_numpy(fac).to(t.dtype)
 
 
@@ -666,7 +668,10 @@ def _fit_torch_scaled(su, z, w, count, order, fallback, max_cond, refine):
     D, Ne = _equilibrate(N)
     enough = count >= M
     ok = enough.clone()
-    if bool(enough.any()):
+    if bool(enough.all()):
+        chol_ok, cond = _condition(Ne.detach())
+        ok = chol_ok & (cond <= max_cond)
+    elif bool(enough.any()):
         idx = enough.nonzero().squeeze(1)
         chol_ok, c = _condition(Ne[idx].detach())
         cond[idx] = c
@@ -674,17 +679,21 @@ def _fit_torch_scaled(su, z, w, count, order, fallback, max_cond, refine):
     good = ok.nonzero().squeeze(1)
     bad = (~ok).nonzero().squeeze(1)
     if good.numel():
-        Dg, Neg = D[good], Ne[good]
+        every = good.numel() == B
+
+        def sel(t):
+            return t if every else t.index_select(0, good)
+
+        Dg, Neg = sel(D), sel(Ne)
         L = torch.linalg.cholesky(Neg)
-        x = Dg * torch.cholesky_solve((Dg * rhs[good])[..., None], L)[..., 0]
-        need = cond[good] > refine
+        x = Dg * torch.cholesky_solve((Dg * sel(rhs))[..., None], L)[..., 0]
+        need = sel(cond) > refine
         if bool(need.any()):
-            Ag, Awg = A[good], Aw[good]
-            r = z[good] - torch.einsum("bkm,bm->bk", Ag, x)
-            g = torch.einsum("bkm,bk->bm", Awg, r)
+            r = sel(z) - torch.einsum("bkm,bm->bk", sel(A), x)
+            g = torch.einsum("bkm,bk->bm", sel(Aw), r)
             dx = Dg * torch.cholesky_solve((Dg * g)[..., None], L)[..., 0]
             x = torch.where(need[:, None], x + dx, x)
-        coeffs = coeffs.index_copy(0, good, x)
+        coeffs = x if every else coeffs.index_copy(0, good, x)
     if bad.numel():
         rank = rank.index_copy(0, bad, _numerical_rank(Ne[bad].detach(), max_cond))
         if fallback:
