@@ -137,7 +137,7 @@ def deform(kind: str, ab: np.ndarray, t: float, size: tuple[float, float]) -> np
         s0 = -0.01
         return developable(ab, np.pi / 2, lambda s: kappa * np.maximum(s - s0, 0.0), sr)
     if kind == "swave":
-        lam, amp = 0.12, 0.45
+        lam, amp = 0.24, 0.5
         return developable(ab, np.pi / 2, lambda s: amp * np.sin(2 * np.pi * (s / lam - t)), sr)
     if kind == "fold":
         theta = np.arctan2(h, w)  # the diagonal

@@ -198,6 +198,11 @@ def _load_obj(path: Path) -> Template:
             raise ValueError(f"{path}:{lineno}: cannot parse {line.strip()!r} ({exc})") from exc
     v = np.asarray(verts, dtype=np.float64).reshape(-1, 3)
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if len(v) == 0 or len(f) == 0:
+        raise ValueError(
+            f"{path}: expected a non-empty (V, 3) vertex array and (F, 3) face array, got "
+            f"{len(v)} vertices and {len(f)} faces"
+        )
     uvs = texture = None
     col = None
     if colors and len(colors) == len(verts):

@@ -1,0 +1,524 @@
+"""Deformation models of PolySfT: the template as oriented jet patches, and the per-vertex baseline.
+
+PolySfT (thesis section 5.3) represents the template as PolyFit patches
+``T_k = {O_k, phi_k(u, v)}`` with ``O_k = (s_k, R_k, T_k)`` and
+``phi_k(u, v) = (u, v, sum_ij alpha_ij u^i v^j)``, and deforms it per frame with jet offsets
+``Delta alpha``, per-point ``uv`` displacements ``Delta uv`` and a rigid motion
+``(R_c, T_c)``::
+
+    x = O_g( R_c O_g^-1( O_k( phi_k(u + Du, v + Dv; alpha_k + Dalpha_k) + r ) ) + T_c )
+
+where ``O_g`` is the template's global PCA frame (for one patch ``O_g = O_k`` and this is the
+thesis' ``O o (R_c phi(u + Du, v + Dv; alpha + Dalpha) + T_c)``) and ``r`` is the height
+residual of the template fit along the patch normal, kept fixed so that zero parameters give the
+template back exactly.
+
+Units. Every patch frame is scaled so that its points lie in the unit disc of the ``uv``
+plane (``s_k`` = the patch radius), and the global frame so that the template fits in the unit
+disc too (``s_g`` = the template radius, 15 cm for a 24 x 18 cm sheet). All parameters live in
+these normalised units, which is what makes the thesis' learning rates (1e-3 for ``Delta uv``,
+1e-2 for ``Delta alpha``, 1e-4 for the rigid motion) independent of the scene's units
+(metres here).
+
+Several patches (``patches > 1``) come from :func:`polygeo.partition.partition_mesh`. Each
+vertex belongs to one patch; a vertex on a patch boundary is also represented as a secondary
+sample in every adjacent patch, and the boundary-consistency term (thesis eq. (51)) pulls each
+secondary sample onto its primary and aligns their jet normals.
+
+Parameters of a frame are a ``dict`` of tensors (one frame) or of stacked tensors with a leading
+frame dimension ``F`` (a window). A model maps them to vertices ``(F, V, 3)`` in camera
+coordinates (scene units).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from polygeo import jets
+from polygeo._validate import as_tensor, check_finite, check_int, check_shape
+from polygeo.frames import Orientation, axis_angle_to_matrix, pca_frames
+
+__all__ = [
+    "JetTemplate",
+    "JetModel",
+    "VertexModel",
+    "DeformationModel",
+    "build_model",
+    "ORDER_AUTO",
+]
+
+#: Value of ``order`` that lets the optimiser raise the jet order on plateaus.
+ORDER_AUTO = "auto"
+
+
+def _global_frame(verts: torch.Tensor) -> Orientation:
+    """PCA frame of all vertices, scaled so that their ``uv`` projections fit the unit disc."""
+    fr = pca_frames(verts[None])
+    local = (verts - fr.centroid) @ fr.rotation[0]  # (V, 3)
+    s = local[:, :2].norm(dim=-1).max().clamp_min(1e-12)
+    return Orientation(s.reshape(1), fr.rotation, fr.centroid)
+
+
+@dataclass(frozen=True)
+class JetTemplate:
+    """A template mesh as ``K`` oriented jet patches (PolyFit), sampled at its vertices.
+
+    Attributes
+    ----------
+    orientation : Orientation
+        ``K`` patch frames ``O_k`` (local -> camera coordinates, scene units).
+    coeffs : torch.Tensor
+        ``(K, M)`` template jet coefficients at ``order`` (normalised local units).
+    order : int
+        Jet order of ``coeffs``.
+    sample_patch : torch.Tensor
+        ``(S,)`` int64 patch of each sample (``S >= V``).
+    sample_vertex : torch.Tensor
+        ``(S,)`` int64 template vertex of each sample.
+    uv : torch.Tensor
+        ``(S, 2)`` sample parameters in their patch (normalised, in the unit disc).
+    residual : torch.Tensor
+        ``(S,)`` template height minus the fitted jet at ``uv`` (normalised units).
+    primary : torch.Tensor
+        ``(V,)`` int64 sample that gives each vertex its position. Samples are sorted by
+        patch (each patch is a contiguous slice, see :attr:`slices`).
+    pairs : torch.Tensor
+        ``(P, 2)`` int64 (primary, secondary) sample pairs on patch boundaries (``P = 0``
+        for a single patch).
+    frame : Orientation
+        The global frame ``O_g`` (one item).
+    fit_rms : float
+        RMS of ``residual`` in scene units (how far the jets are from the template).
+    """
+
+    orientation: Orientation
+    coeffs: torch.Tensor
+    order: int
+    sample_patch: torch.Tensor
+    sample_vertex: torch.Tensor
+    uv: torch.Tensor
+    residual: torch.Tensor
+    primary: torch.Tensor
+    pairs: torch.Tensor
+    frame: Orientation
+    fit_rms: float
+
+    @property
+    def n_patches(self) -> int:
+        """Number of patches ``K``."""
+        return len(self.orientation)
+
+    @property
+    def slices(self) -> list[slice]:
+        """Sample slice of each patch."""
+        counts = torch.bincount(self.sample_patch, minlength=self.n_patches).tolist()
+        ends = np.cumsum(counts)
+        return [slice(int(e - c), int(e)) for c, e in zip(counts, ends)]
+
+    @property
+    def n_samples(self) -> int:
+        """Number of samples ``S``."""
+        return int(self.uv.shape[0])
+
+    @classmethod
+    def fit(
+        cls,
+        verts,
+        faces,
+        order: int = 4,
+        patches: int = 1,
+        *,
+        seed: int = 0,
+    ) -> JetTemplate:
+        """Fit jet patches to a template mesh.
+
+        Parameters
+        ----------
+        verts : array_like
+            ``(V, 3)`` template vertices (camera coordinates, scene units).
+        faces : array_like
+            ``(F, 3)`` triangles.
+        order : int
+            Jet order in ``[1, 6]``.
+        patches : int
+            Number of patches ``K`` (1: the whole template is one patch).
+        seed : int
+            Seed of the partition (``patches > 1``).
+
+        Returns
+        -------
+        JetTemplate
+            In float64.
+
+        Raises
+        ------
+        ValueError
+            On bad shapes, non-finite vertices, an order out of range, or fewer vertices in a
+            patch than coefficients of the jet.
+        """
+        v = as_tensor(verts, "verts", dtype=torch.float64).detach()
+        check_shape(v, "verts", ("V", 3))
+        check_finite(v, "verts")
+        order = check_int(order, "order", low=1, high=jets.MAX_ORDER)
+        patches = check_int(patches, "patches", low=1, high=max(1, v.shape[0]))
+        V = v.shape[0]
+        m = jets.n_coeffs(order)
+        if patches == 1:
+            labels = np.zeros(V, dtype=np.int64)
+            bpairs = np.zeros((0, 2), dtype=np.int64)
+        else:
+            from polygeo.partition import partition_mesh
+
+            part = partition_mesh(v.numpy(), np.asarray(faces), patches, seed=seed,
+                                  min_vertices=2 * m)
+            labels, bpairs = part.labels, part.boundary_pairs
+        K = int(labels.max()) + 1
+        # samples: every vertex in its own patch, boundary vertices also in adjacent patches
+        sp = [labels]
+        sv = [np.arange(V)]
+        la, lb = labels[bpairs[:, 0]], labels[bpairs[:, 1]]
+        extra = np.unique(
+            np.concatenate([np.stack([bpairs[:, 0], lb], 1), np.stack([bpairs[:, 1], la], 1)]),
+            axis=0,
+        ) if len(bpairs) else np.zeros((0, 2), dtype=np.int64)
+        sp.append(extra[:, 1])
+        sv.append(extra[:, 0])
+        sp_np, sv_np = np.concatenate(sp), np.concatenate(sv)
+        is_primary = np.arange(len(sp_np)) < V
+        # order the samples by patch (contiguous slices), primaries first within a patch
+        order_ = np.lexsort((~is_primary, sp_np))
+        where = np.empty_like(order_)
+        where[order_] = np.arange(len(order_))
+        sample_patch = torch.from_numpy(sp_np[order_]).long()
+        sample_vertex = torch.from_numpy(sv_np[order_]).long()
+        primary = torch.from_numpy(where[:V]).long()
+        sec = where[V:]
+        pairs = torch.stack([primary[sample_vertex[sec]], torch.from_numpy(sec).long()], 1)
+        S = len(sample_patch)
+        # per-patch frames and jets
+        s_all = torch.empty(K, dtype=torch.float64)
+        R_all = torch.empty(K, 3, 3, dtype=torch.float64)
+        T_all = torch.empty(K, 3, dtype=torch.float64)
+        coeffs = torch.zeros(K, m, dtype=torch.float64)
+        uv = torch.empty(S, 2, dtype=torch.float64)
+        resid = torch.empty(S, dtype=torch.float64)
+        gframe = _global_frame(v)
+        normal_ref = gframe.R[0, :, 2]
+        for k in range(K):
+            idx = torch.nonzero(sample_patch == k).flatten()
+            pts = v[sample_vertex[idx]]
+            if len(idx) < m:
+                raise ValueError(
+                    f"patches: patch {k} has {len(idx)} vertices, fewer than the {m} "
+                    f"coefficients of an order-{order} jet; use fewer patches or a lower order"
+                )
+            fr = pca_frames(pts[None], reference_normal=normal_ref[None])
+            local = (pts - fr.centroid) @ fr.rotation[0]
+            s = local[:, :2].norm(dim=-1).max().clamp_min(1e-12)
+            local = local / s
+            res = jets.fit(local[None, :, :2], local[None, :, 2], order)
+            coeffs[k] = res.coeffs[0].to(torch.float64)
+            z = jets.evaluate(coeffs[k : k + 1], local[None, :, :2])[0]
+            uv[idx] = local[:, :2]
+            resid[idx] = local[:, 2] - z
+            s_all[k], R_all[k], T_all[k] = s, fr.rotation[0], fr.centroid[0]
+        orient = Orientation(s_all, R_all, T_all)
+        fit_rms = float((resid * s_all[sample_patch]).pow(2).mean().sqrt())
+        return cls(
+            orientation=orient,
+            coeffs=coeffs,
+            order=order,
+            sample_patch=sample_patch,
+            sample_vertex=sample_vertex,
+            uv=uv,
+            residual=resid,
+            primary=primary,
+            pairs=pairs,
+            frame=gframe,
+            fit_rms=fit_rms,
+        )
+
+
+def _rigid(x: torch.Tensor, frame: Orientation, rot: torch.Tensor, trans: torch.Tensor):
+    """Apply the rigid motion ``(R_c, T_c)`` expressed in the normalised global frame.
+
+    ``x`` (F, V, 3) camera coordinates -> ``O_g(R_c O_g^-1(x) + T_c)``.
+    """
+    Rc = axis_angle_to_matrix(rot)  # (F, 3, 3)
+    s, R, T = frame.s[0], frame.R[0], frame.T[0]
+    local = (x - T) @ R / s  # (F, V, 3)
+    moved = local @ Rc.transpose(-1, -2) + trans[:, None, :]
+    return s * (moved @ R.T) + T
+
+
+class DeformationModel:
+    """Interface of a deformation model (see :class:`JetModel`, :class:`VertexModel`).
+
+    Attributes
+    ----------
+    name : str
+        ``"polysft"`` or ``"vertex"``.
+    groups : dict of str to str
+        Parameter name -> learning-rate key of :class:`sft.optimize.SfTSettings`
+        (``"lr_uv"``, ``"lr_alpha"``, ``"lr_rigid"``, ``"lr_vertex"``).
+    temporal : tuple of str
+        Parameters entering the temporal-consistency term (thesis eq. (48)).
+    scale : float
+        The template radius ``s_g`` in scene units (normalised units -> scene units).
+    """
+
+    name: str
+    groups: dict[str, str]
+    temporal: tuple[str, ...]
+    scale: float
+
+    def init_params(self) -> dict[str, torch.Tensor]:
+        """Zero parameters of one frame (the template)."""
+        raise NotImplementedError
+
+    def vertices(self, params: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``(F, V, 3)`` vertices from stacked parameters (leading dimension ``F``)."""
+        raise NotImplementedError
+
+    def regularizer(self, params: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Model-specific extra loss (boundary consistency), a scalar (0 when none)."""
+        return torch.zeros((), dtype=self.dtype)
+
+    def state(self) -> dict:
+        """Mutable state to checkpoint (e.g. the active jet order)."""
+        return {}
+
+    def load_state(self, state: dict) -> None:
+        """Restore :meth:`state`."""
+
+
+class JetModel(DeformationModel):
+    """PolySfT: jet offsets, ``uv`` displacements and a rigid motion per frame.
+
+    Parameters
+    ----------
+    template : JetTemplate
+        The fitted template (its order is the highest order the model can use).
+    order : int or None
+        Active jet order (``<= template.order``); None = ``template.order``. Coefficients of
+        higher degree stay at the template's value (their offsets are masked).
+    k_b, k_bn : float
+        Weights of the boundary-consistency term (eq. (51)): positions (normalised units) and
+        normals ``(1 - cos)^2``; unused for one patch.
+    dtype : torch.dtype
+        Dtype of the parameters and outputs (float32 by default: optimisation).
+    """
+
+    name = "polysft"
+    groups = {"d_alpha": "lr_alpha", "d_uv": "lr_uv", "rot": "lr_rigid", "trans": "lr_rigid"}
+    temporal = ("d_alpha", "d_uv")
+
+    def __init__(
+        self,
+        template: JetTemplate,
+        order: int | None = None,
+        *,
+        k_b: float = 1.0,
+        k_bn: float = 0.1,
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
+        self.template = template
+        self.dtype = dtype
+        self.max_order = template.order
+        self.order = self.max_order if order is None else check_int(order, "order", low=1,
+                                                                   high=self.max_order)
+        self.k_b, self.k_bn = float(k_b), float(k_bn)
+        t = template
+        self.scale = float(t.frame.s[0])
+        self._orient = t.orientation.to(dtype)
+        self._frame = t.frame.to(dtype)
+        self._coeffs = t.coeffs.to(dtype)
+        self._uv = t.uv.to(dtype)
+        self._resid = t.residual.to(dtype)
+        self._degree = jets.exponents(self.max_order).sum(1)  # (M,)
+        self._slices = t.slices
+        V = int(t.primary.shape[0])
+        self._identity = bool(t.n_samples == V and torch.equal(t.primary, torch.arange(V)))
+
+    @property
+    def n_coeffs(self) -> int:
+        """Coefficients per patch at the highest order."""
+        return int(self._coeffs.shape[1])
+
+    def set_order(self, order: int) -> None:
+        """Change the active order (``1 .. template.order``)."""
+        self.order = check_int(order, "order", low=1, high=self.max_order)
+
+    def state(self) -> dict:
+        """Active order."""
+        return {"order": self.order}
+
+    def load_state(self, state: dict) -> None:
+        """Restore the active order."""
+        if "order" in state:
+            self.set_order(int(state["order"]))
+
+    def init_params(self) -> dict[str, torch.Tensor]:
+        """Zero offsets of one frame."""
+        K, M, S = self.template.n_patches, self.n_coeffs, self.template.n_samples
+        z = dict(dtype=self.dtype)
+        return {
+            "d_alpha": torch.zeros(K, M, **z),
+            "d_uv": torch.zeros(S, 2, **z),
+            "rot": torch.zeros(3, **z),
+            "trans": torch.zeros(3, **z),
+        }
+
+    def _active(self) -> torch.Tensor:
+        return (self._degree <= self.order).to(self.dtype)  # (M,)
+
+    def _evaluate(self, params: dict[str, torch.Tensor], normals: bool = False):
+        """Samples in camera coordinates, before the rigid motion, and their jet normals.
+
+        Returns ``(F, S, 3)`` points and ``(F, S, 3)`` unit normals (None unless ``normals``).
+        """
+        uv = self._uv + params["d_uv"]  # (F, S, 2)
+        coeff = self._coeffs + params["d_alpha"] * self._active()  # (F, K, M)
+        o = self._orient
+        xs, ns = [], []
+        for k, sl in enumerate(self._slices):
+            uvk = uv[:, sl]
+            ck = coeff[:, k, :, None]  # (F, M, 1)
+            z = (jets.monomials(uvk, self.max_order) @ ck)[..., 0] + self._resid[sl]
+            pts = torch.cat([uvk, z[..., None]], dim=-1)  # (F, S_k, 3) local
+            xs.append(o.s[k] * (pts @ o.R[k].T) + o.T[k])
+            if normals:
+                zu = (jets.monomial_derivatives(uvk, self.max_order, 1, 0) @ ck)[..., 0]
+                zv = (jets.monomial_derivatives(uvk, self.max_order, 0, 1) @ ck)[..., 0]
+                n = torch.stack([-zu, -zv, torch.ones_like(zu)], dim=-1)
+                ns.append((n / n.norm(dim=-1, keepdim=True)) @ o.R[k].T)
+        x = xs[0] if len(xs) == 1 else torch.cat(xs, dim=1)
+        n = None if not normals else (ns[0] if len(ns) == 1 else torch.cat(ns, dim=1))
+        return x, n
+
+    def vertices(self, params: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``(F, V, 3)`` camera-frame vertices (scene units) of stacked parameters."""
+        x, _ = self._evaluate(params)
+        if not self._identity:
+            x = x.index_select(1, self.template.primary)
+        return _rigid(x, self._frame, params["rot"], params["trans"])
+
+    def regularizer(self, params: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Boundary consistency (eq. (51)) averaged over pairs and frames; 0 for one patch."""
+        t = self.template
+        if len(t.pairs) == 0:
+            return torch.zeros((), dtype=self.dtype)
+        x, n = self._evaluate(params, normals=True)
+        x = x / self.scale  # normalised units
+        a, b = t.pairs[:, 0], t.pairs[:, 1]
+        d2 = (x[:, a] - x[:, b]).pow(2).sum(-1)
+        cos = (n[:, a] * n[:, b]).sum(-1)
+        return (self.k_b * d2 + self.k_bn * (1.0 - cos).pow(2)).mean()
+
+
+class VertexModel(DeformationModel):
+    """Per-vertex baseline: free offsets of every vertex plus the same rigid motion.
+
+    ``x = O_g(R_c (O_g^-1(x_template) + Dx) + T_c)`` with ``Dx`` in normalised units.
+
+    Parameters
+    ----------
+    verts : array_like
+        ``(V, 3)`` template vertices.
+    dtype : torch.dtype
+        Dtype of parameters and outputs.
+    """
+
+    name = "vertex"
+    groups = {"d_x": "lr_vertex", "rot": "lr_rigid", "trans": "lr_rigid"}
+    temporal = ("d_x",)
+
+    def __init__(self, verts, *, dtype: torch.dtype = torch.float32) -> None:
+        v = as_tensor(verts, "verts", dtype=torch.float64).detach()
+        check_shape(v, "verts", ("V", 3))
+        check_finite(v, "verts")
+        self.dtype = dtype
+        frame = _global_frame(v)
+        self.scale = float(frame.s[0])
+        self._frame = frame.to(dtype)
+        self._local = frame.inverse_apply(v[None])[0].to(dtype)  # (V, 3) normalised
+        self.order = None
+
+    def init_params(self) -> dict[str, torch.Tensor]:
+        """Zero offsets of one frame."""
+        z = dict(dtype=self.dtype)
+        return {
+            "d_x": torch.zeros(self._local.shape[0], 3, **z),
+            "rot": torch.zeros(3, **z),
+            "trans": torch.zeros(3, **z),
+        }
+
+    def vertices(self, params: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``(F, V, 3)`` camera-frame vertices of stacked parameters."""
+        f = self._frame
+        local = self._local + params["d_x"]  # (F, V, 3)
+        Rc = axis_angle_to_matrix(params["rot"])
+        moved = local @ Rc.transpose(-1, -2) + params["trans"][:, None, :]
+        return f.s[0] * (moved @ f.R[0].T) + f.T[0]
+
+
+def build_model(
+    method: str,
+    verts,
+    faces,
+    *,
+    order: int | str = 4,
+    max_order: int = 6,
+    patches: int = 1,
+    k_b: float = 1.0,
+    k_bn: float = 0.1,
+    seed: int = 0,
+    dtype: torch.dtype = torch.float32,
+) -> DeformationModel:
+    """Build a deformation model of a template.
+
+    Parameters
+    ----------
+    method : {"polysft", "vertex"}
+        Jet patches (PolySfT) or per-vertex offsets (baseline).
+    verts, faces : array_like
+        ``(V, 3)`` template vertices (scene units) and ``(F, 3)`` triangles.
+    order : int or "auto"
+        Jet order; ``"auto"`` starts at 2 and lets the optimiser raise it up to ``max_order``.
+    max_order : int
+        Highest order for ``"auto"``.
+    patches : int
+        Number of jet patches.
+    k_b, k_bn : float
+        Boundary-consistency weights (several patches).
+    seed : int
+        Partition seed.
+    dtype : torch.dtype
+        Parameter dtype.
+
+    Returns
+    -------
+    DeformationModel
+
+    Raises
+    ------
+    ValueError
+        On an unknown method or order.
+    """
+    if method == "vertex":
+        return VertexModel(verts, dtype=dtype)
+    if method != "polysft":
+        raise ValueError(f"method: expected 'polysft' or 'vertex', got {method!r}")
+    if order == ORDER_AUTO:
+        top = check_int(max_order, "max_order", low=2, high=jets.MAX_ORDER)
+        tmpl = JetTemplate.fit(verts, faces, top, patches, seed=seed)
+        return JetModel(tmpl, order=2, k_b=k_b, k_bn=k_bn, dtype=dtype)
+    if isinstance(order, str):
+        raise ValueError(f"order: expected an integer in [1, {jets.MAX_ORDER}] or 'auto', "
+                         f"got {order!r}")
+    tmpl = JetTemplate.fit(verts, faces, order, patches, seed=seed)
+    return JetModel(tmpl, k_b=k_b, k_bn=k_bn, dtype=dtype)
+

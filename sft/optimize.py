@@ -1,0 +1,453 @@
+"""The PolySfT optimiser: adaptive sliding window, checkpoints and resume.
+
+Adaptive sliding window (thesis section 5.5.2): the frames ``s .. s + W - 1`` are optimised
+together until the loss has not improved on its running minimum for ``patience`` iterations or
+``frame_period`` iterations have run; frame ``s`` is then final (its mesh is written at once),
+the window moves forward by one frame and the frame that enters it starts from the parameters of
+the frame before it. At the end of the sequence the window shrinks. Every frame is thus
+optimised in up to ``W`` windows; the wall time and the iterations of window ``s`` are charged
+to frame ``s``.
+
+One Adam optimiser per window, with the learning rates of the thesis per parameter group
+(``Delta uv`` 1e-3, ``Delta alpha`` 1e-2, rigid 1e-4; the per-vertex baseline's offsets use
+``lr_vertex``). The parameters are in the model's normalised units (the template radius is 1),
+see :mod:`sft.model`.
+
+Checkpoints are written after every ``checkpoint_every`` windows (atomically): the index of the
+next window, the parameters of the frames still in the window, the model's state (active jet
+order) and the per-frame records. Windows are deterministic, so resuming from a checkpoint gives
+the same meshes as an uninterrupted run. Only the current window's frames are held in memory;
+meshes, records and loss curves are written as the run goes, so memory does not grow with the
+number of frames.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from polygeo._validate import check_choice, check_int, check_positive
+from polygeo.io import write_ply
+from polygeo.render import RasterSettings
+
+from .data import Sequence, load_sequence
+from .losses import ImageTerms, Inextensibility, temporal_consistency
+from .metrics import frame_errors, summarize
+from .model import ORDER_AUTO, DeformationModel, build_model
+
+__all__ = ["SfTSettings", "SfTResult", "run_sft", "CHECKPOINT_NAME"]
+
+#: File name of the checkpoint inside the output folder.
+CHECKPOINT_NAME = "checkpoint.pt"
+_CKPT_VERSION = 1
+
+
+@dataclass
+class SfTSettings:
+    """All settings of a PolySfT (or baseline) run, with the thesis' defaults.
+
+    Attributes
+    ----------
+    method : {"polysft", "vertex"}
+        Jet patches (PolySfT) or per-vertex offsets (the baseline).
+    order : int or "auto"
+        Jet order of PolySfT; ``"auto"`` starts at 2 and raises the order by one (up to
+        ``max_order``) whenever a window plateaus, as long as the previous raise improved the
+        loss by more than ``auto_gain`` (relative).
+    max_order : int
+        Highest order for ``"auto"``.
+    auto_gain : float
+        Relative loss decrease a raise must bring for another raise to be tried.
+    patches : int
+        Number of jet patches (1: the whole template, thesis default).
+    window : int
+        Sliding-window size ``W``.
+    patience : int
+        Iterations without improvement of the running minimum that end a window.
+    frame_period : int
+        Most iterations per window.
+    min_improvement : float
+        An iteration improves when its loss is below ``(1 - min_improvement)`` times the
+        running minimum.
+    lr_uv, lr_alpha, lr_rigid, lr_vertex : float
+        Adam learning rates (normalised units): ``Delta uv``, ``Delta alpha``, rigid motion
+        (rotation vector in radians and translation), per-vertex offsets (baseline).
+    k_rgb, k_sil, k_mi, k_tc : float
+        Weights of the colour, silhouette, inextensibility (eq. (47)) and temporal
+        consistency (eq. (48)) terms.
+    k_b, k_bn : float
+        Boundary consistency (eq. (51), several patches): positions and normals.
+    rgb_kind : {"l1", "l2"}
+    sil_kind : {"l2", "l1", "iou"}
+    sigma : float
+        Soft rasterizer sharpness in pixels² (:class:`polygeo.render.RasterSettings`).
+    gamma : float
+        Soft rasterizer depth temperature.
+    dtype : {"float32", "float64"}
+        Optimisation dtype.
+    checkpoint_every : int
+        Windows between checkpoints (0: none).
+    overlays : int
+        Number of frames (spread over the sequence) that get a render/frame/error PNG.
+    seed : int
+        Seed (patch partition; the optimisation itself is deterministic).
+    """
+
+    method: str = "polysft"
+    order: int | str = 4
+    max_order: int = 6
+    auto_gain: float = 0.01
+    patches: int = 1
+    window: int = 3
+    patience: int = 100
+    frame_period: int = 500
+    min_improvement: float = 1e-4
+    lr_uv: float = 1e-3
+    lr_alpha: float = 1e-2
+    lr_rigid: float = 1e-4
+    lr_vertex: float = 1e-3
+    k_rgb: float = 1.0
+    k_sil: float = 1.0
+    k_mi: float = 0.1
+    k_tc: float = 0.05
+    k_b: float = 1.0
+    k_bn: float = 0.1
+    rgb_kind: str = "l1"
+    sil_kind: str = "l2"
+    sigma: float = 0.1
+    gamma: float = 1e-4
+    dtype: str = "float32"
+    checkpoint_every: int = 1
+    overlays: int = 4
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_choice(self.method, "method", ("polysft", "vertex"))
+        if self.order != ORDER_AUTO:
+            self.order = check_int(self.order, "order", low=1, high=6)
+        self.max_order = check_int(self.max_order, "max_order", low=2, high=6)
+        self.patches = check_int(self.patches, "patches", low=1)
+        self.window = check_int(self.window, "window", low=1)
+        self.patience = check_int(self.patience, "patience", low=1)
+        self.frame_period = check_int(self.frame_period, "frame_period", low=1)
+        self.checkpoint_every = check_int(self.checkpoint_every, "checkpoint_every", low=0)
+        self.overlays = check_int(self.overlays, "overlays", low=0)
+        self.seed = check_int(self.seed, "seed")
+        for name in ("lr_uv", "lr_alpha", "lr_rigid", "lr_vertex", "sigma", "gamma"):
+            setattr(self, name, check_positive(getattr(self, name), name))
+        for name in ("k_rgb", "k_sil", "k_mi", "k_tc", "k_b", "k_bn", "min_improvement",
+                     "auto_gain"):
+            setattr(self, name, check_positive(getattr(self, name), name, strict=False))
+        check_choice(self.rgb_kind, "rgb_kind", ("l1", "l2"))
+        check_choice(self.sil_kind, "sil_kind", ("l2", "l1", "iou"))
+        check_choice(self.dtype, "dtype", ("float32", "float64"))
+
+    @property
+    def torch_dtype(self) -> torch.dtype:
+        """The optimisation dtype as a torch dtype."""
+        return torch.float32 if self.dtype == "float32" else torch.float64
+
+
+@dataclass(frozen=True)
+class SfTResult:
+    """Outcome of :func:`run_sft`.
+
+    Attributes
+    ----------
+    out_dir : Path
+        The output folder.
+    rows : list of dict
+        Per-frame records: ``frame``, ``iterations``, ``seconds`` (wall), ``cpu_seconds``,
+        ``loss``, ``order`` (active jet order), ``rss_mb`` and, with ground truth, the
+        fields of :class:`sft.metrics.FrameErrors`.
+    summary : dict
+        Means over frames (:func:`sft.metrics.summarize`).
+    complete : bool
+        False when the run stopped early (``max_windows``).
+    """
+
+    out_dir: Path
+    rows: list[dict[str, Any]]
+    summary: dict[str, float]
+    complete: bool
+
+
+def _rss_mb() -> float:
+    try:
+        with open("/proc/self/statm") as fh:
+            pages = int(fh.read().split()[1])
+        return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError):  # pragma: no cover - non-Linux
+        import resource
+
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _fingerprint(seq: Sequence) -> str:
+    h = hashlib.sha1()
+    h.update(np.ascontiguousarray(seq.template.verts).tobytes())
+    h.update(np.ascontiguousarray(seq.template.faces).tobytes())
+    h.update(np.ascontiguousarray(seq.K).tobytes())
+    h.update(str(seq.n_frames).encode())
+    return h.hexdigest()
+
+
+def _atomic_save(obj: Any, path: Path) -> None:
+    tmp = path.with_name(path.name + ".part")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+class _Window:
+    """Frames of the current window with their cached targets."""
+
+    def __init__(self, seq: Sequence, terms: ImageTerms) -> None:
+        self.seq, self.terms = seq, terms
+        self.cache: dict[int, tuple[torch.Tensor, torch.Tensor | None]] = {}
+
+    def targets(self, idx: list[int]):
+        for j in idx:
+            if j not in self.cache:
+                self.cache[j] = self.terms.target(self.seq.frame(j), self.seq.mask(j))
+        for j in list(self.cache):
+            if j not in idx:
+                del self.cache[j]
+        t = torch.stack([self.cache[j][0] for j in idx])
+        m = None
+        if self.seq.has_masks:
+            m = torch.stack([self.cache[j][1] for j in idx])
+        return t, m
+
+
+def _overlay_frames(n: int, k: int) -> set[int]:
+    if k <= 0:
+        return set()
+    return {int(round(x)) for x in np.linspace(0, n - 1, min(k, n))}
+
+
+def run_sft(
+    sequence: Sequence | str | os.PathLike,
+    out_dir: str | os.PathLike,
+    settings: SfTSettings | None = None,
+    *,
+    resume: bool = True,
+    progress: bool = True,
+    max_frames: int | None = None,
+    max_windows: int | None = None,
+    charts: bool = True,
+) -> SfTResult:
+    """Reconstruct every frame of a sequence; write meshes, metrics, charts and checkpoints.
+
+    Parameters
+    ----------
+    sequence : Sequence or path
+        A loaded sequence or its folder (see :mod:`sft.data`).
+    out_dir : path
+        Output folder: ``meshes/000000.ply ...`` (template vertex order, scene units),
+        ``metrics.json``, ``losses.jsonl`` (one line per window), ``checkpoint.pt`` and PNG
+        charts. Created if needed.
+    settings : SfTSettings, optional
+        Defaults to ``SfTSettings()`` (the thesis' settings).
+    resume : bool
+        Continue from ``out_dir/checkpoint.pt`` when it exists and matches the sequence and
+        settings; otherwise start over.
+    progress : bool
+        Show a tqdm progress bar.
+    max_frames : int, optional
+        Process only the first ``max_frames`` frames.
+    max_windows : int, optional
+        Stop after this many windows of this call (simulates an interruption; used by tests).
+    charts : bool
+        Write the PNG charts at the end.
+
+    Returns
+    -------
+    SfTResult
+
+    Raises
+    ------
+    ValueError
+        If a checkpoint exists for other settings or another sequence and ``resume`` is True,
+        or on invalid settings.
+    """
+    settings = settings or SfTSettings()
+    seq = sequence if isinstance(sequence, Sequence) else load_sequence(sequence)
+    out = Path(out_dir)
+    (out / "meshes").mkdir(parents=True, exist_ok=True)
+    T = seq.n_frames if max_frames is None else min(seq.n_frames, check_int(max_frames,
+                                                                            "max_frames", low=1))
+    dtype = settings.torch_dtype
+    t = seq.template
+    model = build_model(
+        settings.method, t.verts, t.faces, order=settings.order, max_order=settings.max_order,
+        patches=settings.patches, k_b=settings.k_b, k_bn=settings.k_bn, seed=settings.seed,
+        dtype=dtype,
+    )
+    raster = RasterSettings(sigma=settings.sigma, gamma=settings.gamma)
+    terms = ImageTerms(seq, raster, k_rgb=settings.k_rgb, k_sil=settings.k_sil,
+                       rgb_kind=settings.rgb_kind, sil_kind=settings.sil_kind, dtype=dtype)
+    inext = Inextensibility(t.verts, t.faces, model.scale, settings.k_mi)
+    window = _Window(seq, terms)
+    fp = _fingerprint(seq)
+    ckpt_path = out / CHECKPOINT_NAME
+    sdict = asdict(settings)
+
+    start, rows, pending, last = 0, [], {}, None
+    if resume and ckpt_path.is_file():
+        ck = torch.load(ckpt_path, weights_only=False)
+        if ck.get("fingerprint") != fp or ck.get("settings") != sdict or ck.get("T") != T:
+            raise ValueError(
+                f"{ckpt_path}: the checkpoint belongs to another sequence or other settings; "
+                "remove it or choose another output folder"
+            )
+        start, rows, pending, last = ck["next"], ck["rows"], ck["pending"], ck["last"]
+        model.load_state(ck["model_state"])
+    losses_path = out / "losses.jsonl"
+    if start == 0 and losses_path.exists():
+        losses_path.unlink()
+    elif losses_path.exists():  # drop lines of windows after the checkpoint
+        kept = [ln for ln in losses_path.read_text().splitlines()
+                if ln.strip() and json.loads(ln)["frame"] < start]
+        losses_path.write_text("".join(ln + "\n" for ln in kept))
+
+    overlay_set = _overlay_frames(T, settings.overlays)
+    template_v = torch.as_tensor(t.verts, dtype=torch.float64)
+    W = settings.window
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=T, initial=start, desc=f"sft {settings.method}", unit="frame")
+    n_windows = 0
+    for s in range(start, T):
+        if max_windows is not None and n_windows >= max_windows:
+            break
+        t0, c0 = time.perf_counter(), time.process_time()
+        idx = list(range(s, min(s + W, T)))
+        for j in idx:
+            if j not in pending:
+                src = pending.get(j - 1, last)
+                pending[j] = ({k: v.clone() for k, v in src.items()} if src is not None
+                              else model.init_params())
+        targets, masks = window.targets(idx)
+        iters, curve, loss_val = _optimize_window(model, terms, inext, settings, pending, idx,
+                                                  targets, masks)
+        with torch.no_grad():
+            p = {k: v[None] for k, v in pending[s].items()}
+            X = model.vertices(p)[0].to(torch.float64)
+        write_ply(out / "meshes" / f"{s:06d}.ply", X.numpy(), t.faces)
+        row: dict[str, Any] = {"frame": s, "iterations": iters, "loss": loss_val,
+                               "order": getattr(model, "order", None)}
+        gt = seq.gt(s)
+        if gt is not None:
+            row.update(frame_errors(X, gt, template_v, t.faces).as_dict())
+        if s in overlay_set:
+            _overlay(out / f"overlay_{s:06d}.png", terms, X, targets[0], gt, t.faces)
+        last = pending.pop(s)
+        row["seconds"] = time.perf_counter() - t0
+        row["cpu_seconds"] = time.process_time() - c0
+        row["rss_mb"] = _rss_mb()
+        rows.append(row)
+        with open(losses_path, "a") as fh:
+            fh.write(json.dumps({"frame": s, "iterations": iters, "loss": curve}) + "\n")
+        n_windows += 1
+        if settings.checkpoint_every and (n_windows % settings.checkpoint_every == 0
+                                          or s == T - 1):
+            _atomic_save({"version": _CKPT_VERSION, "fingerprint": fp, "settings": sdict, "T": T,
+                          "next": s + 1, "rows": rows, "pending": pending, "last": last,
+                          "model_state": model.state()}, ckpt_path)
+        if bar is not None:
+            bar.update(1)
+            if "e_3d" in row:
+                bar.set_postfix(e3d=f"{row['e_3d']:.4f}", it=iters)
+    if bar is not None:
+        bar.close()
+    complete = len(rows) == T
+    summary = summarize(rows)
+    record = {"sequence": str(seq.root), "frames": T, "complete": complete,
+              "settings": sdict, "mean": summary, "per_frame": rows}
+    tmp = out / "metrics.json.part"
+    tmp.write_text(json.dumps(record, indent=1) + "\n")
+    os.replace(tmp, out / "metrics.json")
+    if charts and complete:
+        from .plots import write_charts
+
+        write_charts(out, rows, losses_path)
+    return SfTResult(out_dir=out, rows=rows, summary=summary, complete=complete)
+
+
+def _optimize_window(model: DeformationModel, terms: ImageTerms, inext: Inextensibility,
+                     st: SfTSettings, pending: dict, idx: list[int], targets: torch.Tensor,
+                     masks: torch.Tensor | None) -> tuple[int, list[float], float]:
+    """Optimise the frames ``idx`` in place in ``pending``; return (iterations, curve, loss)."""
+    names = list(model.init_params())
+    params = {n: torch.stack([pending[j][n] for j in idx]).requires_grad_(True) for n in names}
+    groups = [{"params": [params[n]], "lr": getattr(st, model.groups[n])} for n in names]
+    opt = torch.optim.Adam(groups)
+    best, since, curve = float("inf"), 0, []
+    auto = st.method == "polysft" and st.order == ORDER_AUTO
+    best_at_raise = None
+    it = 0
+    for it in range(1, st.frame_period + 1):  # noqa: B007 - `it` is reported after the loop
+        opt.zero_grad(set_to_none=True)
+        verts = model.vertices(params)
+        img = terms(verts, targets, masks)
+        per_frame = img["rgb"] + inext(verts)
+        if "sil" in img:
+            per_frame = per_frame + img["sil"]
+        loss = per_frame.sum() + model.regularizer(params)
+        if st.k_tc > 0 and len(idx) > 1:
+            loss = loss + temporal_consistency(params, model.temporal, st.k_tc)
+        loss.backward()
+        opt.step()
+        val = float(loss.detach())
+        curve.append(val)
+        if val < best * (1.0 - st.min_improvement):
+            best, since = val, 0
+        else:
+            since += 1
+        if since >= st.patience:
+            if auto and model.order < model.max_order and (
+                best_at_raise is None or best < best_at_raise * (1.0 - st.auto_gain)
+            ):
+                best_at_raise = best
+                model.set_order(model.order + 1)
+                since = 0
+                continue
+            break
+    for k, j in enumerate(idx):
+        pending[j] = {n: params[n][k].detach().clone() for n in names}
+    return it, curve, curve[-1] if curve else float("nan")
+
+
+def _overlay(path: Path, terms: ImageTerms, X: torch.Tensor, target: torch.Tensor,
+             gt: np.ndarray | None, faces: np.ndarray) -> None:
+    """PNG: frame | render | colour error | per-vertex 3D error (when ground truth exists)."""
+    from .plots import overlay_png
+
+    with torch.no_grad():
+        rgb, alpha = terms.render(X[None].to(terms.dtype), hard=True)
+    err_img = None
+    if gt is not None:
+        err = (X - torch.as_tensor(gt)).norm(dim=-1)
+        err_img = terms_error_render(terms, X, err)
+    overlay_png(path, target.numpy(), rgb[0].numpy(), alpha[0].numpy(), err_img)
+
+
+def terms_error_render(terms: ImageTerms, X: torch.Tensor, err: torch.Tensor):
+    """Render per-vertex errors (scene units) as vertex colours; return (image, vmax)."""
+    from polygeo.render import render
+
+    vmax = float(err.max()) if float(err.max()) > 0 else 1.0
+    c = (err / vmax).to(terms.dtype)[:, None].repeat(1, 3)
+    out = render(X[None].to(terms.dtype), terms.faces, terms.camera, terms._hard, colors=c[None],
+                 coords="camera")
+    return out.rgb[0, ..., 0].numpy(), out.alpha[0].numpy(), vmax

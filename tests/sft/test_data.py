@@ -1,0 +1,215 @@
+"""sft.data: the sequence format, its validation and a round trip."""
+
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+
+from sft.data import (
+    SequenceWriter,
+    Template,
+    load_camera,
+    load_sequence,
+    load_template,
+    write_sequence,
+)
+
+H, W = 24, 32
+K = np.array([[30.0, 0.0, 16.0], [0.0, 30.0, 12.0], [0.0, 0.0, 1.0]])
+
+
+def _template(textured=True):
+    a, b = np.meshgrid(np.linspace(-0.05, 0.05, 4), np.linspace(-0.04, 0.04, 3))
+    verts = np.stack([a.ravel(), b.ravel(), np.full(a.size, 0.3)], 1)
+    faces = []
+    for j in range(2):
+        for i in range(3):
+            v = j * 4 + i
+            faces += [[v, v + 1, v + 4], [v + 1, v + 5, v + 4]]
+    faces = np.array(faces)
+    if textured:
+        uvs = np.stack([(a.ravel() + 0.05) / 0.1, (b.ravel() + 0.04) / 0.08], 1)
+        tex = np.random.default_rng(1).random((8, 8, 3)).astype(np.float32)
+        return Template(verts=verts, faces=faces, uvs=uvs, texture=tex)
+    cols = np.random.default_rng(2).random((len(verts), 3)).astype(np.float32)
+    return Template(verts=verts, faces=faces, colors=cols)
+
+
+@pytest.fixture
+def seq_dir(tmp_path, rng):
+    t = _template()
+    frames = [rng.random((H, W, 3)) for _ in range(3)]
+    masks = [rng.random((H, W)) > 0.5 for _ in range(3)]
+    gt = [t.verts + 0.001 * k for k in range(3)]
+    return write_sequence(tmp_path / "seq", t, K, W, H, frames, masks, gt), t, frames, masks, gt
+
+
+def test_round_trip(seq_dir):
+    path, t, frames, masks, gt = seq_dir
+    s = load_sequence(path)
+    assert s.n_frames == 3 and s.has_masks and s.has_gt
+    np.testing.assert_allclose(s.template.verts, t.verts, rtol=1e-8)
+    np.testing.assert_array_equal(s.template.faces, t.faces)
+    np.testing.assert_allclose(s.template.uvs, t.uvs, atol=1e-8)
+    np.testing.assert_allclose(s.template.texture, t.texture, atol=0.5 / 255 + 1e-6)
+    np.testing.assert_allclose(s.K, K)
+    assert (s.width, s.height) == (W, H)
+    for i in range(3):
+        np.testing.assert_allclose(s.frame(i), frames[i], atol=0.5 / 255 + 1e-6)
+        np.testing.assert_array_equal(s.mask(i), masks[i].astype(np.float32))
+        np.testing.assert_allclose(s.gt(i), gt[i], rtol=1e-6)  # float32 PLY
+
+
+def test_round_trip_vertex_colours_no_masks(tmp_path, rng):
+    t = _template(textured=False)
+    frames = [rng.random((H, W, 3)) for _ in range(2)]
+    p = write_sequence(tmp_path / "s", t, K, W, H, frames)
+    s = load_sequence(p)
+    assert not s.has_masks and not s.has_gt and s.mask(0) is None and s.gt(1) is None
+    assert s.template.texture is None
+    np.testing.assert_allclose(s.template.colors, t.colors, atol=1e-5)
+
+
+def test_ply_template_with_colours(tmp_path):
+    from polygeo.io import write_ply
+
+    t = _template(textured=False)
+    d = tmp_path / "s"
+    write_sequence(d, t, K, W, H, [np.zeros((H, W, 3))])
+    (d / "template.obj").unlink()
+    cols = (255 * t.colors).astype(np.uint8)
+    write_ply(d / "template.ply", t.verts, t.faces,
+              {"red": cols[:, 0], "green": cols[:, 1], "blue": cols[:, 2]})
+    s = load_sequence(d)
+    np.testing.assert_allclose(s.template.colors, cols / 255.0, atol=1e-6)
+
+
+def test_writer_refuses_non_empty_folder(seq_dir):
+    path, t, *_ = seq_dir
+    with pytest.raises(FileExistsError, match="not empty"):
+        SequenceWriter(path, t, K, W, H)
+
+
+def test_writer_bad_sizes_and_partial_masks(tmp_path):
+    t = _template()
+    w = SequenceWriter(tmp_path / "s", t, K, W, H)
+    with pytest.raises(ValueError, match="rgb: expected shape"):
+        w.add_frame(np.zeros((H + 1, W, 3)))
+    w.add_frame(np.zeros((H, W, 3)), mask=np.ones((H, W)))
+    with pytest.raises(ValueError, match="some frames only"):
+        w.add_frame(np.zeros((H, W, 3)))
+    w.abort()
+    assert not (tmp_path / "s").exists()
+
+
+# ---------------------------------------------------------------- validation failures
+
+
+def _break(path, what):
+    if what == "missing_frame":
+        (path / "frames" / "000001.png").unlink()
+    elif what == "extra_file":
+        (path / "frames" / "notes.txt").write_text("x")
+    elif what == "size":
+        cv2.imwrite(str(path / "frames" / "000002.png"), np.zeros((H, W + 2, 3), np.uint8))
+    elif what == "mask_size":
+        cv2.imwrite(str(path / "masks" / "000000.png"), np.zeros((H + 1, W), np.uint8))
+    elif what == "mask_count":
+        (path / "masks" / "000002.png").unlink()
+    elif what == "gt_count":
+        (path / "gt" / "000001.ply").unlink()
+    elif what == "gt_vertices":
+        from polygeo.io import write_ply
+
+        write_ply(path / "gt" / "000001.ply", np.zeros((5, 3)))
+    elif what == "singular_K":
+        cam = json.loads((path / "camera.json").read_text())
+        cam["K"][0][0] = 0.0
+        (path / "camera.json").write_text(json.dumps(cam))
+    elif what == "bad_K_row":
+        cam = json.loads((path / "camera.json").read_text())
+        cam["K"][2] = [0.0, 1.0, 1.0]
+        (path / "camera.json").write_text(json.dumps(cam))
+    elif what == "camera_key":
+        cam = json.loads((path / "camera.json").read_text())
+        del cam["width"]
+        (path / "camera.json").write_text(json.dumps(cam))
+    elif what == "camera_json":
+        (path / "camera.json").write_text("{not json")
+    elif what == "empty_template":
+        (path / "template.obj").write_text("mtllib template.mtl\n")
+    elif what == "face_range":
+        with open(path / "template.obj", "a") as fh:
+            fh.write("f 1/1 2/2 99/3\n")
+    elif what == "texture_missing":
+        (path / "texture.png").unlink()
+    elif what == "both_templates":
+        shutil.copy(path / "template.obj", path / "template.ply")
+    elif what == "obj_syntax":
+        with open(path / "template.obj", "a") as fh:
+            fh.write("v 1.0 abc 2.0\n")
+    return path
+
+
+@pytest.mark.parametrize(
+    "what, exc, match",
+    [
+        ("missing_frame", ValueError, r"frames: missing frame \[1\]"),
+        ("extra_file", ValueError, r"frames: unexpected frame file\(s\) \['notes.txt'\]"),
+        ("size", ValueError, r"000002.png: image size 34x24 differs from camera.json 32x24"),
+        ("mask_size", ValueError, r"masks/000000.png: mask size 32x25 differs"),
+        ("mask_count", ValueError, r"masks: 2 masks for 3 frames"),
+        ("gt_count", ValueError, r"gt: missing ground-truth \[1\]"),
+        ("gt_vertices", ValueError, r"gt/000001.ply: 5 vertices, the template has 12"),
+        ("singular_K", ValueError, r"camera.json: K is not invertible"),
+        ("bad_K_row", ValueError, r"camera.json: expected K = "),
+        ("camera_key", ValueError, r"camera.json: missing key\(s\) \['width'\]"),
+        ("camera_json", ValueError, r"camera.json: not valid JSON"),
+        ("empty_template", ValueError, r"template.obj: expected a non-empty \(V, 3\)"),
+        ("face_range", ValueError, r"template.obj: face indices must lie in"),
+        ("texture_missing", ValueError, r"template.mtl: texture 'texture.png' \(map_Kd\)"),
+        ("both_templates", ValueError, r"both template.obj and template.ply"),
+        ("obj_syntax", ValueError, r"template.obj:\d+: cannot parse"),
+    ],
+)
+def test_validation_errors_name_the_file(seq_dir, what, exc, match):
+    path = _break(seq_dir[0], what)
+    with pytest.raises(exc, match=match):
+        load_sequence(path)
+
+
+def test_missing_pieces(tmp_path, seq_dir):
+    with pytest.raises(FileNotFoundError, match="sequence folder does not exist"):
+        load_sequence(tmp_path / "nope")
+    path = seq_dir[0]
+    (path / "camera.json").unlink()
+    with pytest.raises(FileNotFoundError, match="camera.json: camera file does not exist"):
+        load_sequence(path)
+    shutil.rmtree(path / "frames")
+    with pytest.raises(FileNotFoundError):
+        load_sequence(path)
+    with pytest.raises(FileNotFoundError, match="template"):
+        load_template(tmp_path / "none.obj")
+    with pytest.raises(FileNotFoundError, match="camera"):
+        load_camera(tmp_path / "none.json")
+
+
+def test_uv_seam_rejected(seq_dir):
+    path = seq_dir[0]
+    text = (path / "template.obj").read_text().splitlines()
+    # give vertex 1 a second texture coordinate in one face
+    text.append("vt 0.9 0.9")
+    n_vt = sum(1 for ln in text if ln.startswith("vt "))
+    text.append(f"f 1/{n_vt} 2/2 5/5")
+    (path / "template.obj").write_text("\n".join(text) + "\n")
+    with pytest.raises(ValueError, match="several texture coordinates"):
+        load_sequence(path)
+
+
+def test_template_without_appearance(tmp_path):
+    t = _template()
+    bad = Template(verts=t.verts, faces=t.faces)
+    with pytest.raises(ValueError, match="neither a texture nor vertex colours"):
+        SequenceWriter(tmp_path / "s", bad, K, W, H)
