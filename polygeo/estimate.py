@@ -53,12 +53,20 @@ from ._validate import as_tensor, check_choice, check_int, check_positive, check
 from .neighbors import PointIndex, mesh_k_ring
 from .status import Status
 
-__all__ = ["DifferentialQuantities", "differential_quantities", "AUTO_K_CANDIDATES"]
+__all__ = [
+    "DifferentialQuantities",
+    "differential_quantities",
+    "AUTO_K_CANDIDATES",
+    "AUTO_ORDERS",
+    "MAX_COND",
+]
 
 #: Neighbourhood sizes tried by ``k="auto"`` (capped by the number of points).
 AUTO_K_CANDIDATES = (12, 24, 48, 96, 192, 384)
 #: Jet orders tried by ``order="auto"``.
 AUTO_ORDERS = (2, 3, 4)
+#: Default largest condition number accepted per jet order (see ``max_cond``).
+MAX_COND = {1: 1e3, 2: 1e3, 3: 1e4, 4: 1e5}
 
 
 @dataclass(frozen=True)
@@ -405,13 +413,14 @@ class _Local:
             )
 
 
-def _fit(local: _Local, order: int, weights: np.ndarray | None) -> jets.JetFit:
+def _fit(local: _Local, order: int, weights: np.ndarray | None, max_cond: float) -> jets.JetFit:
     return jets.fit(
         torch.from_numpy(local.uv),
         torch.from_numpy(local.z),
         order,
         mask=torch.from_numpy(local.valid),
         weights=None if weights is None else torch.from_numpy(weights),
+        max_cond=max_cond,
         backend="numba",
     )
 
@@ -487,7 +496,7 @@ def _ici_select(normals: list[np.ndarray], delta: list[np.ndarray], gamma: float
 # ----------------------------------------------------------------------------- torch path
 
 
-def _torch_chunk(pts_t, qidx, nbr, valid, order, weights):
+def _torch_chunk(pts_t, qidx, nbr, valid, order, weights, max_cond):
     """Differentiable path with J1's frames / jets / diffgeo (one chunk)."""
     from .diffgeo import from_jet, to_world
     from .frames import pca_frames
@@ -502,7 +511,9 @@ def _torch_chunk(pts_t, qidx, nbr, valid, order, weights):
     R = fr.rotation
     uvz = local @ R
     w = None if weights is None else torch.from_numpy(weights)
-    fit = jets.fit(uvz[..., :2], uvz[..., 2], order, mask=m, weights=w, backend="torch")
+    fit = jets.fit(
+        uvz[..., :2], uvz[..., 2], order, mask=m, weights=w, max_cond=max_cond, backend="torch"
+    )
     geom = to_world(from_jet(fit.coeffs).squeeze(1), R)
     return fit, geom, R
 
@@ -537,6 +548,7 @@ def differential_quantities(
     k_candidates: tuple[int, ...] = AUTO_K_CANDIDATES,
     auto_orders: tuple[int, ...] = AUTO_ORDERS,
     alpha: float = 0.01,
+    max_cond: float | None = None,
 ) -> DifferentialQuantities:
     """Per-point normals, principal curvatures and directions, H and K by n-jet fitting.
 
@@ -591,6 +603,13 @@ def differential_quantities(
         Orders tried by ``order="auto"``.
     alpha : float
         Significance level of the order F-test.
+    max_cond : float, optional
+        Largest accepted condition number of a neighbourhood's preconditioned, equilibrated
+        least-squares system (:func:`polygeo.jets.fit`); default per order
+        ``MAX_COND = {1: 1e3, 2: 1e3, 3: 1e4, 4: 1e5}``. Well-spread 20-neighbourhoods
+        measure about 6-30 at order 2 (up to a few 1e3 at order 4); points on two scan lines
+        measure 1e4 and more at order 2 and give curvatures that are guesses across the
+        lines, so they are fitted at a lower order and flagged ``ORDER_REDUCED``.
 
     Returns
     -------
@@ -639,6 +658,8 @@ def differential_quantities(
     if radius is not None:
         radius = check_positive(radius, "radius")
     batch_size = check_int(batch_size, "batch_size", low=1)
+    if max_cond is not None:
+        max_cond = check_positive(max_cond, "max_cond")
     alpha = float(alpha)
     if not 0.0 < alpha < 1.0:
         raise ValueError(f"alpha: expected a value in (0, 1), got {alpha}")
@@ -735,7 +756,8 @@ def differential_quantities(
         if use_torch:
             local = _Local(P, rep[q], nbr, dist, nbr.shape[1])
             w = _gaussian_weights(local) if weights == "gaussian" else None
-            fit, geom, R = _torch_chunk(pts_t, rep[q], nbr, local.valid, orders[0], w)
+            mc = max_cond or MAX_COND[orders[0]]
+            fit, geom, R = _torch_chunk(pts_t, rep[q], nbr, local.valid, orders[0], w, mc)
             torch_parts.append((q, fit, geom, R))
             status[q] = fit.status.numpy()
             fitted_order[q] = fit.fitted_order.numpy()
@@ -749,7 +771,7 @@ def differential_quantities(
         for size in sizes:
             local = _Local(P, rep[q], nbr, dist, size)
             w = _gaussian_weights(local) if weights == "gaussian" else None
-            fits = [_fit(local, o, w) for o in orders]
+            fits = [_fit(local, o, w, max_cond or MAX_COND[o]) for o in orders]
             pick = _select_order(fits, orders, alpha) if len(orders) > 1 else np.zeros(q.size, int)
             co = np.zeros((q.size, M))
             for j, fj in enumerate(fits):
@@ -905,9 +927,15 @@ def _orientation(P, nrm, status, graph, ref, faces, orient, workers) -> np.ndarr
         sign = np.where(decided & (dot < 0), -1.0, 1.0)
         if decided.all() or not (usable & ~decided).any():
             return sign
-    prop = ori.propagate_orientation(P, nz, neighbors=graph, workers=workers)
-    s_prop = prop.sign
-    comp = prop.component
+    # propagate through reliable estimates only: a flagged normal (scan line, too few
+    # points) may be far off and would flip everything behind it
+    good = usable & (status == Status.OK)
+    if not good.any():
+        good = usable
+    nz_good = np.where(good[:, None], nz, 0.0)
+    prop = ori.propagate_orientation(P, nz_good, neighbors=graph, workers=workers)
+    s_prop = np.where(good, prop.sign, 1.0)
+    comp = np.where(good, prop.component, -1)
     if ref_dir is not None and decided.any():
         # per component: agree with the majority of decided points
         ok = decided & (comp >= 0)
@@ -915,10 +943,20 @@ def _orientation(P, nrm, status, graph, ref, faces, orient, workers) -> np.ndarr
         dot = np.abs(np.einsum("ij,ij->i", nz, ref_dir))
         np.add.at(vote, comp[ok], (sign[ok] * s_prop[ok]) * dot[ok])
         comp_sign = np.where(vote < 0, -1.0, 1.0)
-        rest = usable & ~decided & (comp >= 0)
+        rest = good & ~decided & (comp >= 0)
         sign[rest] = s_prop[rest] * comp_sign[comp[rest]]
-        return sign
-    return np.where(usable, s_prop, 1.0)
+    else:
+        sign = s_prop.copy()
+    # flagged points: agree with the oriented normals of their reliable graph neighbours
+    rest = usable & ~good & ~decided
+    if rest.any():
+        nb = graph[rest]
+        valid = (nb >= 0) & good[np.maximum(nb, 0)]
+        oriented = nz[np.maximum(nb, 0)] * (sign[np.maximum(nb, 0)] * valid)[..., None]
+        ref_rest = oriented.sum(1)
+        d = np.einsum("ij,ij->i", nz[rest], ref_rest)
+        sign[rest] = np.where(d < 0, -1.0, 1.0)
+    return np.where(usable, sign, 1.0)
 
 
 def _apply_sign_np(res: dict, s: np.ndarray) -> dict:

@@ -11,9 +11,11 @@ the order the estimator tries them:
    after Hoppe et al. (1992): a minimum spanning tree on weights ``1 - |n_i . n_j|`` so
    that the sign travels across nearly parallel normals first, seeded per connected
    component at its point of largest ``z`` (the extreme point of a closed surface, whose
-   outward normal has ``n_z > 0``), whose normal is made to point to ``+z``. (Generalised:
-   of the six extreme points along +-x, +-y, +-z the one whose normal is most aligned with
-   its axis is the seed, so an open cylinder along ``z`` is seeded on its side.)
+   outward normal has ``n_z > 0``), whose normal is made to point to ``+z``. Generalised
+   here: of the six extreme points along +-x, +-y, +-z the seed is the one whose normal is
+   best aligned with the direction from the component's centroid, and its normal is made
+   to point away from the centroid (an open cylinder is then seeded on its side, a single
+   scan ring outward).
 
 Functions accept NumPy or torch and return the input's type. Orientation is a sign choice
 per point: it is applied with a multiplication by +-1, so gradients pass through.
@@ -206,9 +208,9 @@ def propagate_orientation(
     Oriented
         Normals, signs, and the connected component of each point in the graph. In each
         component the normal at the seed (the extreme point along one of +-x, +-y, +-z whose
-        normal is best aligned with that axis) points along that axis (outward on a closed
-        surface) and every other normal agrees with its parent in the minimum
-        spanning tree of weights ``1 - |n_i . n_j|``.
+        normal is best aligned with the direction from the component's centroid) points away
+        from the centroid (outward on a closed surface) and every other normal agrees with
+        its parent in the minimum spanning tree of weights ``1 - |n_i . n_j|``.
 
     Raises
     ------
@@ -252,22 +254,29 @@ def propagate_orientation(
         tree = minimum_spanning_tree(g)  # treats the directed k-NN edges as undirected
         tree = tree.maximum(tree.T)
         # seed of each component: among its extreme points along +-x, +-y, +-z, the one whose
-        # normal is most aligned with that axis (an outward normal there points along it)
+        # normal is best aligned with the direction from the component's centroid; that
+        # normal is made to point away from the centroid (outward on a closed surface)
+        cnt = np.bincount(comp, weights=ok.astype(float), minlength=ncomp)
+        cen = np.stack(
+            [np.bincount(comp, weights=np.where(ok, pn[:, a], 0.0), minlength=ncomp)
+             for a in range(3)], 1,
+        ) / np.maximum(cnt, 1)[:, None]
         best_score = np.full(ncomp, -1.0)
         seeds = np.zeros(ncomp, dtype=np.int64)
-        seed_dir = np.zeros((ncomp, 3))
         for axis in range(3):
             for sgn in (1.0, -1.0):
                 cand = _group_argmax(np.where(ok, sgn * pn[:, axis], -np.inf), comp, ncomp)
-                score = np.abs(nn[cand, axis])
+                radial = pn[cand] - cen[comp[cand]]
+                rn = np.linalg.norm(radial, axis=1)
+                dots = np.abs(np.einsum("ij,ij->i", nn[cand], radial))
+                score = dots / np.where(rn > 0, rn, 1)
                 better = score > best_score[comp[cand]] + 1e-12
                 cc = comp[cand][better]
                 best_score[cc] = score[better]
                 seeds[cc] = cand[better]
-                seed_dir[cc] = 0.0
-                seed_dir[cc, axis] = sgn
+        seed_dir = pn[seeds] - cen[comp[seeds]]
         # one breadth-first pass from a virtual root linked to every seed
-        seeds_ok = seeds[ok[seeds]]
+        seeds_ok = seeds[(best_score >= 0) & ok[seeds]]
         root = npts
         link = sp.coo_matrix(
             (np.ones(seeds_ok.size), (np.full(seeds_ok.size, root), seeds_ok)),

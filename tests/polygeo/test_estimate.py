@@ -225,6 +225,15 @@ def test_scan_lines_are_reported():
     res = differential_quantities(pts, k=8)
     assert (res.status == Status.ORDER_REDUCED).all()
     assert np.isfinite(res.normals).all() and np.isfinite(res.mean_curvature).all()
+    # larger neighbourhoods reach two or three rings: the points whose fit is well posed are
+    # right (and oriented outward), the others are flagged, none is silently wrong
+    for k in (20, 40):
+        res = differential_quantities(pts, k=k)
+        ok = res.status == 0
+        assert 0 < ok.sum() < len(pts)
+        assert (res.status[~ok] == Status.ORDER_REDUCED).all()
+        assert np.abs(res.mean_curvature[ok] + 1).max() < 0.02
+        assert angle_deg(res.normals[ok], pts[ok]).max() < 0.1
 
 
 def test_collinear_and_planar_neighbourhoods():

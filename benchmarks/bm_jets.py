@@ -1,0 +1,815 @@
+"""Benchmark of polygeo's jet estimator: accuracy against throughput, peers, robustness.
+
+Run ``python benchmarks/bm_jets.py [--quick] [--out DIR]``. Writes ``bm_jets.json`` and
+``bm_jets.png`` (error against throughput, one curve per method) into ``benchmarks/results``.
+
+What is measured (issue 2, Benchmark section):
+
+* accuracy: median and 95th percentile normal angle error (unoriented, degrees), median
+  relative error of H and K (signs aligned with the true normal), and the same on the border
+  of an open cylinder, for analytic surfaces (torus, open cylinder, sphere, Monge patch) at
+  noise 0, 0.1 % and 1 % of the bounding-box diagonal, about 10k and 100k vertices;
+* throughput (points per second): k-NN alone, the fitting stage alone (neighbourhoods given),
+  J1's ``jets.fit`` alone, the whole pipeline without and with normal orientation;
+* the same inputs through the peers that are installed (recorded as skipped otherwise):
+  CGAL ``jet_estimate_normals``, Open3D PCA normals, libigl ``principal_curvature``, pyvista
+  ``curvature``, trimesh discrete curvature measures, and a plain vectorised NumPy jet fit
+  (the in-run baseline);
+* parsimony: ``order="auto"`` and ``k="auto"`` against fixed settings under 0.1 % noise;
+* robustness: the issue's failure cases through polygeo and the peers (each peer in a forked
+  child, so that a crash is recorded instead of ending the benchmark).
+
+All timings are wall-clock on whatever machine runs this (shared CPUs make them noisy: the
+speed reference is the median of 3 runs, and ratios are against peers measured in the same
+run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import os
+import platform
+import sys
+import tempfile
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+os.environ.setdefault("MPLBACKEND", "Agg")
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+# ------------------------------------------------------------------------------ data
+
+
+def make_surface(name: str, size: int, noise: float, seed: int = 0):
+    """Mesh sample of an analytic surface with about ``size`` vertices."""
+    from polygeo import synthetic as sy
+
+    if name == "torus":
+        s = sy.torus_mesh(int(round(np.sqrt(size / 0.3))), noise=noise, seed=seed)
+    elif name == "cylinder":
+        s = sy.cylinder_mesh(int(round(np.sqrt(size / 0.33))), noise=noise, seed=seed)
+    elif name == "sphere":
+        sub = int(np.clip(round(np.log(max(size, 12) / 10) / np.log(4)), 1, 7))
+        s = sy.sphere_mesh(sub, noise=noise, seed=seed)
+    elif name == "monge":
+        s = sy.monge_patch_mesh(
+            int(round(np.sqrt(size))), k1=1.0, k2=0.5, b=(0.3, 0.1, -0.2, 0.2),
+            c=(0.5, 0.1, 0.2, -0.1, 0.3), noise=noise, seed=seed,
+        )
+    else:
+        raise ValueError(name)
+    return s
+
+
+def metrics(s, normals=None, H=None, K=None, sel=None, h_sign=None) -> dict:
+    """Accuracy against the analytic truth (normal lines unoriented; H aligned)."""
+    idx = np.arange(len(s.points)) if sel is None else sel
+    out: dict = {}
+    if normals is not None:
+        n = np.asarray(normals, dtype=np.float64)[idx]
+        nt = s.normals[idx]
+        norm = np.linalg.norm(n, axis=1)
+        bad = ~np.isfinite(n).all(1) | (norm < 1e-12)
+        d = np.abs(np.einsum("ij,ij->i", n, nt)) / np.where(bad, 1, norm)
+        ang = np.degrees(np.arccos(np.clip(d, 0, 1)))
+        ang[bad] = 90.0
+        out["normal_median_deg"] = float(np.median(ang))
+        out["normal_p95_deg"] = float(np.percentile(ang, 95))
+        out["normal_mean_deg"] = float(np.mean(ang))
+        out["nonfinite_normals"] = int(bad.sum())
+    scale = float(np.max(np.abs(np.c_[s.k1, s.k2])))
+    if H is not None:
+        h = np.asarray(H, dtype=np.float64)[idx]
+        if h_sign is not None:
+            h = h * h_sign[idx]
+        ht = s.mean_curvature[idx]
+        ok = np.abs(ht) > 1e-6 * scale
+        rel = np.abs(h - ht)[ok] / np.abs(ht[ok])
+        rel = np.where(np.isfinite(rel), rel, np.inf)
+        out["H_rel_median"] = float(np.median(rel)) if rel.size else None
+        out["nonfinite_H"] = int((~np.isfinite(h)).sum())
+    if K is not None:
+        kk = np.asarray(K, dtype=np.float64)[idx]
+        kt = s.gaussian_curvature[idx]
+        ok = np.abs(kt) > 1e-3 * scale**2
+        rel = np.abs(kk - kt)[ok] / np.abs(kt[ok])
+        rel = np.where(np.isfinite(rel), rel, np.inf)
+        out["K_rel_median"] = float(np.median(rel)) if rel.size > 0.5 * len(idx) else None
+    return out
+
+
+def border_of(name: str, s):
+    if name != "cylinder":
+        return None
+    z = s.points[:, 2]
+    return np.flatnonzero(np.abs(z) > 0.9 * np.abs(z).max())
+
+
+# ------------------------------------------------------------------------------ methods
+
+
+def run_polygeo(P, F, k, order, orient="none", **kw):
+    from polygeo.estimate import differential_quantities
+
+    t = time.perf_counter()
+    r = differential_quantities(P, k=k, order=order, orient=orient, progress=False, **kw)
+    dt = time.perf_counter() - t
+    return r, dt
+
+
+def polygeo_stages(P, k, order, repeats=3):
+    """Median times of k-NN, fitting stage (frames + fit + geometry), jets.fit alone."""
+    import torch
+
+    from polygeo import estimate as E
+    from polygeo import jets
+    from polygeo.neighbors import PointIndex
+
+    t_knn, t_stage, t_fit = [], [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        idx = PointIndex(P)
+        q = idx.spatial_order()
+        q = np.arange(len(P)) if q is None else q
+        nbr, dist = idx.query(P[q], k, self_index=q)
+        t1 = time.perf_counter()
+        local = E._Local(P, q, nbr, dist, k)
+        t2 = time.perf_counter()
+        fit = jets.fit(
+            torch.from_numpy(local.uv), torch.from_numpy(local.z), order,
+            mask=torch.from_numpy(local.valid), backend="numba",
+        )
+        t3 = time.perf_counter()
+        E._geometry(fit.coeffs.double().numpy(), local.R)
+        t4 = time.perf_counter()
+        t_knn.append(t1 - t0)
+        t_stage.append(t4 - t1)
+        t_fit.append(t3 - t2)
+    return float(np.median(t_knn)), float(np.median(t_stage)), float(np.median(t_fit))
+
+
+def numpy_baseline(P, k, order=2):
+    """Plain vectorised NumPy jet fit (cKDTree, batched eigh, normal equations)."""
+    from scipy.spatial import cKDTree
+
+    t0 = time.perf_counter()
+    _, idx = cKDTree(P).query(P, k, workers=-1)
+    t1 = time.perf_counter()
+    X = P[idx] - P[:, None, :]
+    C = X - X.mean(1, keepdims=True)
+    cov = np.einsum("qki,qkj->qij", C, C)
+    _, vec = np.linalg.eigh(cov)
+    e1, e3 = vec[:, :, 2], vec[:, :, 0]
+    e2 = np.cross(e3, e1)
+    R = np.stack([e1, e2, e3], -1)
+    uvz = np.einsum("qki,qij->qkj", X, R)
+    u, v, z = uvz[..., 0], uvz[..., 1], uvz[..., 2]
+    h = np.sqrt((u**2 + v**2).max(1))[:, None]
+    us, vs = u / h, v / h
+    cols, degs = [], []
+    for d in range(order + 1):
+        for j in range(d + 1):
+            cols.append(us ** (d - j) * vs**j)
+            degs.append(d)
+    A = np.stack(cols, -1)
+    ata = np.einsum("qkm,qkn->qmn", A, A)
+    atb = np.einsum("qkm,qk->qm", A, z)
+    coef = np.linalg.solve(ata, atb[..., None])[..., 0] / h ** np.array(degs)[None, :]
+    a10, a01 = coef[:, 1], coef[:, 2]
+    a20, a11, a02 = (coef[:, 3], coef[:, 4], coef[:, 5]) if order >= 2 else (0 * a10,) * 3
+    w = np.sqrt(1 + a10**2 + a01**2)
+    n_loc = np.stack([-a10, -a01, np.ones_like(a10)], -1) / w[:, None]
+    E_, F_, G_ = 1 + a10**2, a10 * a01, 1 + a01**2
+    L, M, N = 2 * a20 / w, a11 / w, 2 * a02 / w
+    det = E_ * G_ - F_**2
+    H = (E_ * N - 2 * F_ * M + G_ * L) / (2 * det)
+    K = (L * N - M**2) / det
+    normals = np.einsum("qij,qj->qi", R, n_loc)
+    t2 = time.perf_counter()
+    return {"normals": normals, "H": H, "K": K, "t_knn": t1 - t0, "t_total": t2 - t0}
+
+
+def peer_cgal(P, F, k, degree=2):
+    from CGAL.CGAL_Kernel import Point_3
+    from CGAL.CGAL_Point_set_3 import Point_set_3
+    from CGAL.CGAL_Point_set_processing_3 import jet_estimate_normals
+
+    from polygeo.io import read_points
+
+    with tempfile.TemporaryDirectory() as d:
+        ps = Point_set_3()
+        for x, y, z in P.tolist():
+            ps.insert(Point_3(x, y, z))
+        ps.add_normal_map()
+        t = time.perf_counter()
+        jet_estimate_normals(ps, int(k), degree_fitting=int(degree))
+        dt = time.perf_counter() - t
+        dst = os.path.join(d, "out.ply")
+        ps.write(dst)
+        back = read_points(dst)
+    if back.points.shape != P.shape or not np.allclose(back.points, P, equal_nan=True):
+        raise RuntimeError("CGAL reordered or dropped points")
+    return {"normals": back.normals, "t_total": dt}
+
+
+def peer_open3d(P, F, k):
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
+    t = time.perf_counter()
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(int(k)))
+    dt = time.perf_counter() - t
+    return {"normals": np.asarray(pc.normals).copy(), "t_total": dt}
+
+
+def peer_igl(P, F, k, rings=2):
+    import igl
+
+    t = time.perf_counter()
+    pd1, pd2, pv1, pv2, *_ = igl.principal_curvature(P, F, radius=int(rings), use_k_ring=True)
+    normals = igl.per_vertex_normals(P, F)
+    dt = time.perf_counter() - t
+    # libigl: positive on a sphere with outward faces; polygeo: negative (bends away from n)
+    k1, k2 = -np.asarray(pv2), -np.asarray(pv1)
+    return {"normals": normals, "H": 0.5 * (k1 + k2), "K": k1 * k2, "t_total": dt}
+
+
+def peer_pyvista(P, F, k):
+    import pyvista as pv
+
+    poly = pv.PolyData(P, np.c_[np.full(len(F), 3), F].ravel())
+    t = time.perf_counter()
+    H = -np.asarray(poly.curvature("mean"))  # pyvista: positive on a convex outward surface
+    K = np.asarray(poly.curvature("gaussian"))
+    normals = np.asarray(poly.compute_normals(auto_orient_normals=False).point_normals)
+    dt = time.perf_counter() - t
+    return {"normals": normals, "H": H, "K": K, "t_total": dt}
+
+
+def peer_trimesh(P, F, k, n_query=2000, seed=0):
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    m = trimesh.Trimesh(P, F, process=False)
+    rng = np.random.default_rng(seed)
+    sel = np.sort(rng.choice(len(P), size=min(n_query, len(P)), replace=False))
+    # ball radius: median distance to the k-th neighbour (same support as a k-NN fit)
+    r = float(np.median(cKDTree(P).query(P[sel], int(k))[0][:, -1]))
+    t = time.perf_counter()
+    hm = trimesh.curvature.discrete_mean_curvature_measure(m, P[sel], r)
+    km = trimesh.curvature.discrete_gaussian_curvature_measure(m, P[sel], r)
+    normals = np.asarray(m.vertex_normals)
+    dt = time.perf_counter() - t
+    area = trimesh.curvature.sphere_ball_intersection(1.0, r) if r < 1 else np.pi * r * r
+    H = np.full(len(P), np.nan)
+    K = np.full(len(P), np.nan)
+    H[sel] = -hm / area
+    K[sel] = km / area
+    return {"normals": normals, "H": H, "K": K, "t_total": dt, "sel": sel, "radius": r}
+
+
+PEERS = {
+    "cgal_jet_normals": peer_cgal,
+    "open3d_pca_normals": peer_open3d,
+    "libigl_principal_curvature": peer_igl,
+    "pyvista_curvature": peer_pyvista,
+    "trimesh_curvature_measure": peer_trimesh,
+}
+PEER_MODULES = {
+    "cgal_jet_normals": "CGAL",
+    "open3d_pca_normals": "open3d",
+    "libigl_principal_curvature": "igl",
+    "pyvista_curvature": "pyvista",
+    "trimesh_curvature_measure": "trimesh",
+}
+
+
+def _child(conn, fn, args, kwargs):
+    try:
+        conn.send(("ok", fn(*args, **kwargs)))
+    except BaseException as exc:  # report any exception as data
+        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+    finally:
+        conn.close()
+
+
+def isolated(fn, *args, timeout=300.0, **kwargs):
+    """Run ``fn`` in a forked child; return ('ok', result) / ('error', msg) / ('crash', msg)."""
+    ctx = mp.get_context("fork")
+    a, b = ctx.Pipe(duplex=False)
+    p = ctx.Process(target=_child, args=(b, fn, args, kwargs))
+    p.start()
+    b.close()
+    result = None
+    if a.poll(timeout):
+        try:
+            result = a.recv()
+        except EOFError:
+            result = None
+    p.join(5)
+    if p.is_alive():
+        p.kill()
+        p.join()
+        return ("crash", f"hang (> {timeout:.0f} s)")
+    if result is None:
+        return ("crash", f"process died with exit code {p.exitcode}")
+    return result
+
+
+def available_peers() -> dict:
+    import importlib.util
+
+    out = {}
+    for name, mod in PEER_MODULES.items():
+        out[name] = importlib.util.find_spec(mod) is not None
+    return out
+
+
+# ------------------------------------------------------------------------------ robustness
+
+
+def robustness_cases(seed=0):
+    """The issue's failure cases, each with the clean input it should behave like.
+
+    Every case has ``points``/``faces``/``k`` (the broken input), ``clean`` (points, faces)
+    whose result it is compared with, ``map`` (row of the clean result for each point),
+    ``skip`` (points not assessed: a fin vertex, stray unreferenced vertices) and ``nan``
+    (points whose input is NaN: a finite, unflagged answer there is silently wrong).
+    """
+    from polygeo import synthetic as sy
+
+    rng = np.random.default_rng(seed)
+    s = sy.sphere(4000, seed=seed)
+    n = len(s.points)
+    none = np.zeros(n, bool)
+    cloud = dict(clean=(s.points, None), map=np.arange(n), skip=none, nan=none, k=20)
+    cases = {}
+    # scan lines: latitude rings of 400 points; most 20-neighbourhoods lie on one ring. There
+    # is no clean equivalent: compare with the analytic sphere (normals radial, H = -1).
+    th = np.linspace(0.3, np.pi - 0.3, 20)
+    ph = np.linspace(0, 2 * np.pi, 400, endpoint=False)
+    t, p = np.meshgrid(th, ph, indexing="ij")
+    rp = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1).reshape(-1, 3)
+    cases["scan_lines"] = dict(points=rp, faces=None, k=20, clean=None, truth_normals=rp,
+                               truth_H=-np.ones(len(rp)), map=np.arange(len(rp)),
+                               skip=np.zeros(len(rp), bool), nan=np.zeros(len(rp), bool))
+    cases["points_repeated_10x"] = dict(cloud, points=np.repeat(s.points, 10, axis=0),
+                                        faces=None, map=np.repeat(np.arange(n), 10),
+                                        skip=np.zeros(10 * n, bool), nan=np.zeros(10 * n, bool))
+    nan_last = np.r_[none, True]
+    cases["one_nan_point"] = dict(cloud, points=np.vstack([s.points, [[np.nan] * 3]]),
+                                  faces=None, map=np.r_[np.arange(n), 0], skip=nan_last,
+                                  nan=nan_last)
+    cases["shift_1e8"] = dict(cloud, points=s.points + 1e8, faces=None)
+    cases["k_below_n_coeffs"] = dict(cloud, points=s.points, faces=None, k=4)
+    m = sy.torus_mesh(100)
+    nv = len(m.points)
+    vnone = np.zeros(nv, bool)
+    mesh = dict(clean=(m.points, m.faces), map=np.arange(nv), skip=vnone, nan=vnone, k=20)
+    v = m.points.copy()
+    v[5] = np.nan
+    nan5 = vnone.copy()
+    nan5[5] = True
+    cases["mesh_nan_vertex"] = dict(mesh, points=v, faces=m.faces, skip=nan5, nan=nan5)
+    e = m.faces[0]
+    vf = np.vstack([m.points, m.points[e[0]] + 0.05 * m.normals[e[0]]])
+    ff = np.vstack([m.faces, [[e[0], e[1], nv]]])
+    cases["mesh_nonmanifold_fin"] = dict(mesh, points=vf, faces=ff, map=np.r_[np.arange(nv), 0],
+                                         skip=np.r_[vnone, True], nan=np.r_[vnone, False])
+    sv = m.points[m.faces].reshape(-1, 3)
+    ns = len(sv)
+    cases["mesh_unwelded_soup"] = dict(mesh, points=sv, faces=np.arange(ns).reshape(-1, 3),
+                                       map=m.faces.reshape(-1), skip=np.zeros(ns, bool),
+                                       nan=np.zeros(ns, bool))
+    fl = m.faces.copy()
+    flip = rng.random(len(fl)) < 0.5
+    fl[flip] = fl[flip][:, ::-1]
+    cases["mesh_half_faces_flipped"] = dict(mesh, points=m.points, faces=fl)
+    vu = np.vstack([m.points, rng.normal(size=(50, 3)) * 0.001 + m.points[:50]])
+    cases["mesh_unreferenced_vertices"] = dict(
+        mesh, points=vu, faces=m.faces, map=np.r_[np.arange(nv), np.arange(50)],
+        skip=np.r_[vnone, np.ones(50, bool)], nan=np.r_[vnone, np.zeros(50, bool)],
+    )
+    return cases
+
+
+#: Methods whose normals (and curvature signs) carry an orientation.
+ORIENTED = {"polygeo", "libigl_principal_curvature", "pyvista_curvature",
+            "trimesh_curvature_measure"}
+
+
+def classify(case, method, kind, res, ref, tol_deg=5.0, tol_h=0.2):
+    """Outcome of a method on a broken input, against its own result on the clean input.
+
+    ok: every assessed point agrees with the clean run (normals within ``tol_deg``, H within
+    ``tol_h`` relative, same sign for oriented methods) and NaN inputs give NaN or a flag;
+    reported: same, with the disagreeing points flagged by a status; error: a clear
+    exception; crash: the process died or hung; silent_wrong: otherwise.
+    """
+    if kind == "crash":
+        return {"outcome": "crash", "detail": str(res)[:200]}
+    if kind == "error":
+        return {"outcome": "error", "detail": str(res)[:200]}
+    mp_ = case["map"]
+    sel = res.get("sel")
+    rows = np.arange(len(mp_)) if sel is None else sel
+    status = res.get("status")
+    flagged = np.zeros(len(mp_), bool) if status is None else np.asarray(status) != 0
+    assess = ~case["skip"] & ~flagged
+    wrong = np.zeros(len(mp_), bool)
+    oriented = method in ORIENTED
+    n = res.get("normals")
+    if n is not None:
+        n = np.asarray(n, dtype=np.float64)
+        nref = ref["normals"][mp_] if ref is not None else case["truth_normals"]
+        good = np.isfinite(n).all(1) & (np.linalg.norm(n, axis=1) > 1e-12)
+        nn = n / np.where(good, np.linalg.norm(n, axis=1), 1)[:, None]
+        nr = nref / np.maximum(np.linalg.norm(nref, axis=1), 1e-300)[:, None]
+        d = np.einsum("ij,ij->i", np.where(good[:, None], nn, 0), np.nan_to_num(nr))
+        d = d if (oriented and ref is not None) else np.abs(d)
+        ang = np.degrees(np.arccos(np.clip(d, -1, 1)))
+        wrong |= ~good | (ang > tol_deg)
+    H = res.get("H")
+    if H is not None:
+        h = np.asarray(H, dtype=np.float64)
+        href = ref["H"][mp_] if ref is not None else case["truth_H"]
+        if ref is None or not oriented:
+            h, href = np.abs(h), np.abs(href)
+        rel = np.abs(h - href) / np.maximum(np.abs(href), 1e-12)
+        wrong |= ~np.isfinite(h) | (rel > tol_h)
+    wrong_rows = wrong[rows] & assess[rows]
+    nan_in = case["nan"][rows]
+    silent_nan = 0
+    if nan_in.any():
+        out_finite = np.ones(len(mp_), bool)
+        if n is not None:
+            out_finite &= np.isfinite(n).all(1)
+        if H is not None:
+            out_finite &= np.isfinite(np.asarray(H, dtype=np.float64))
+        silent_nan = int((nan_in & out_finite[rows] & ~flagged[rows]).sum())
+    detail = dict(assessed=int(assess[rows].sum()), disagree=int(wrong_rows.sum()),
+                  flagged=int(flagged.sum()), nan_input_answered_silently=silent_nan)
+    if wrong_rows.sum() > 0.01 * max(assess[rows].sum(), 1) or silent_nan:
+        outcome = "silent_wrong"
+    elif flagged.any():
+        outcome = "reported"
+    else:
+        outcome = "ok"
+    return {"outcome": outcome, **detail}
+
+
+def _polygeo_payload(P, F, k):
+    from polygeo.estimate import differential_quantities
+
+    r = differential_quantities(P, F, k=k, order=2, progress=False)
+    return {"normals": r.normals, "H": r.mean_curvature, "status": r.status}
+
+
+def _numpy_payload(P, F, k):
+    return numpy_baseline(P, k, 2)
+
+
+def run_robustness(timeout=180.0):
+    cases = robustness_cases()
+    peers = available_peers()
+    methods = {"polygeo": _polygeo_payload, "numpy_jets": _numpy_payload}
+    methods.update({p: PEERS[p] for p, ok in peers.items() if ok})
+    mesh_only = {"libigl_principal_curvature", "pyvista_curvature", "trimesh_curvature_measure"}
+    table = {}
+    clean_cache: dict = {}
+    for name, case in cases.items():
+        row = {}
+        for method, fn in methods.items():
+            if method in mesh_only and case["faces"] is None:
+                row[method] = {"outcome": "n/a (needs a mesh)"}
+                continue
+            ref = None
+            if case["clean"] is not None:
+                key = (method, id(case["clean"][0]))
+                if key not in clean_cache:
+                    cp, cf = case["clean"]
+                    clean_cache[key] = isolated(fn, cp, cf, 20, timeout=timeout)
+                ck, ref = clean_cache[key]
+                if ck != "ok":
+                    row[method] = {"outcome": "clean run failed", "detail": str(ref)[:200]}
+                    continue
+            if method == "polygeo":  # ours runs in-process (it must not crash)
+                try:
+                    kind, res = "ok", fn(case["points"], case["faces"], case["k"])
+                except (ValueError, TypeError) as exc:
+                    kind, res = "error", f"{type(exc).__name__}: {exc}"
+            else:
+                kind, res = isolated(fn, case["points"], case["faces"], case["k"],
+                                     timeout=timeout)
+            row[method] = classify(case, method, kind, res, ref)
+        table[name] = row
+    return table
+
+
+# ------------------------------------------------------------------------------ main
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="a small subset (minutes)")
+    ap.add_argument("--out", default=str(RESULTS), help="results folder")
+    ap.add_argument("--no-peers", action="store_true", help="skip the peer libraries")
+    ap.add_argument("--no-robustness", action="store_true", help="skip the robustness table")
+    args = ap.parse_args(argv)
+    from tqdm.auto import tqdm
+
+    import polygeo
+
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if args.quick:
+        surfaces, noises, sizes = ["torus", "cylinder"], [0.0, 0.001], [10_000]
+        orders, ks = [2], [20]
+        ref_size = 20_000
+        park = [20, 50, 100]
+    else:
+        surfaces = ["torus", "cylinder", "sphere", "monge"]
+        noises, sizes = [0.0, 0.001, 0.01], [10_000, 100_000]
+        orders, ks = [1, 2, 3, 4], [20, 50, 100]
+        ref_size = 100_000
+        park = [20, 50, 100, 200, 400]
+    peers = {} if args.no_peers else available_peers()
+    record = {
+        "benchmark": "jets",
+        "polygeo_version": polygeo.__version__,
+        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
+                    "python": sys.version.split()[0]},
+        "quick": bool(args.quick),
+        "peers_available": peers,
+        "notes": [
+            "normal errors are angles between lines (unoriented), so methods that do not "
+            "orient are comparable; H is compared after aligning its sign with the true normal",
+            "polygeo accuracy runs use orient='none' (orientation does not change the "
+            "metrics); the speed reference reports the pipeline with and without orientation",
+            "trimesh's curvature measures are evaluated at 2000 random vertices (throughput "
+            "counted per evaluated vertex) with a ball radius equal to the median distance to "
+            "the k-th neighbour",
+            "libigl principal_curvature uses a 2-ring (about 19 vertices on these meshes) for "
+            "k=20 comparisons",
+        ],
+        "accuracy": [],
+    }
+    # warm-up (numba compilation / cache load)
+    warm = make_surface("torus", 2000, 0.0)
+    run_polygeo(warm.points, warm.faces, 20, 2)
+    numpy_baseline(warm.points, 20, 2)
+
+    # ---------------------------------------------------------------- speed reference
+    ref = make_surface("torus", ref_size, 0.0)
+    P = ref.noisy_points
+    n = len(P)
+    speed = {"surface": "torus", "n_points": n, "k": 20, "order": 2}
+    t_knn, t_stage, t_fit = polygeo_stages(P, 20, 2, repeats=3)
+    totals, totals_or = [], []
+    for _ in range(3):
+        r, dt = run_polygeo(P, None, 20, 2, orient="none")
+        totals.append(dt)
+        r2, dt2 = run_polygeo(P, None, 20, 2, orient="auto")
+        totals_or.append(dt2)
+    speed["polygeo"] = {
+        "knn_pts_per_s": n / t_knn,
+        "fit_stage_pts_per_s": n / t_stage,
+        "jets_fit_alone_pts_per_s": n / t_fit,
+        "pipeline_pts_per_s": n / float(np.median(totals)),
+        "pipeline_with_orientation_pts_per_s": n / float(np.median(totals_or)),
+        "times_s": {"knn": t_knn, "fit_stage": t_stage, "jets_fit": t_fit,
+                    "pipeline": totals, "pipeline_with_orientation": totals_or},
+        **metrics(ref, r.normals, r.mean_curvature, r.gaussian_curvature,
+                  h_sign=np.sign(np.einsum("ij,ij->i", r.normals, ref.normals))),
+    }
+    nb_t = [numpy_baseline(P, 20, 2) for _ in range(3)]
+    tt = float(np.median([x["t_total"] for x in nb_t]))
+    speed["numpy_jets"] = {"pipeline_pts_per_s": n / tt,
+                           "knn_pts_per_s": n / float(np.median([x["t_knn"] for x in nb_t])),
+                           **metrics(ref, nb_t[0]["normals"], nb_t[0]["H"], nb_t[0]["K"],
+                                     h_sign=np.sign(np.einsum("ij,ij->i", nb_t[0]["normals"],
+                                                              ref.normals)))}
+    for peer in ("cgal_jet_normals", "open3d_pca_normals"):
+        if not peers.get(peer):
+            speed[peer] = {"skipped": "not installed"}
+            continue
+        runs = []
+        for _ in range(3):
+            kind, res = isolated(PEERS[peer], P, ref.faces, 20, timeout=600)
+            if kind != "ok":
+                break
+            runs.append(res)
+        if len(runs) < 3:
+            speed[peer] = {"failed": res}
+            continue
+        tt = float(np.median([x["t_total"] for x in runs]))
+        speed[peer] = {"pipeline_pts_per_s": n / tt, **metrics(ref, runs[0]["normals"])}
+    cg = speed.get("cgal_jet_normals", {}).get("pipeline_pts_per_s")
+    base = speed["numpy_jets"]["pipeline_pts_per_s"]
+    pg = speed["polygeo"]
+    speed["ratios"] = {
+        "pipeline_vs_numpy": pg["pipeline_pts_per_s"] / base,
+        "pipeline_vs_cgal": pg["pipeline_pts_per_s"] / cg if cg else None,
+        "pipeline_with_orientation_vs_cgal": (
+            pg["pipeline_with_orientation_pts_per_s"] / cg if cg else None
+        ),
+        "knn_vs_numpy_ckdtree": pg["knn_pts_per_s"] / speed["numpy_jets"]["knn_pts_per_s"],
+    }
+    record["speed_reference"] = speed
+    _print_speed(speed)
+
+    # ---------------------------------------------------------------- accuracy grid
+    grid = [(s, nz, sz) for sz in sizes for s in surfaces for nz in noises]
+    bar = tqdm(grid, desc="accuracy grid", unit="dataset")
+    for surf, noise, size in bar:
+        data = make_surface(surf, size, noise)
+        P, F = data.noisy_points, data.faces
+        n = len(P)
+        border = border_of(surf, data)
+        for order in orders:
+            for k in ks:
+                from polygeo.jets import n_coeffs
+
+                if k < n_coeffs(order):
+                    continue
+                r, dt = run_polygeo(P, F, k, order)
+                sgn = np.sign(np.einsum("ij,ij->i", r.normals, data.normals))
+                entry = dict(method="polygeo", surface=surf, noise=noise, n=n, k=k, order=order,
+                             pts_per_s=n / dt, flagged=int((r.status != 0).sum()),
+                             **metrics(data, r.normals, r.mean_curvature, r.gaussian_curvature,
+                                       h_sign=sgn))
+                if border is not None:
+                    entry["border"] = metrics(data, r.normals, r.mean_curvature, None,
+                                              sel=border, h_sign=sgn)
+                record["accuracy"].append(entry)
+        for order in orders:
+            nbres = numpy_baseline(P, 20, order) if order >= 1 else None
+            sgn = np.sign(np.einsum("ij,ij->i", nbres["normals"], data.normals))
+            entry = dict(method="numpy_jets", surface=surf, noise=noise, n=n, k=20, order=order,
+                         pts_per_s=n / nbres["t_total"],
+                         **metrics(data, nbres["normals"], nbres["H"] if order >= 2 else None,
+                                   nbres["K"] if order >= 2 else None, h_sign=sgn))
+            if border is not None and order >= 2:
+                entry["border"] = metrics(data, nbres["normals"], nbres["H"], None, sel=border,
+                                          h_sign=sgn)
+            record["accuracy"].append(entry)
+        for peer, ok in peers.items():
+            if not ok:
+                continue
+            degrees = orders if peer == "cgal_jet_normals" else [None]
+            for deg in degrees:
+                kw = {"degree": deg} if deg is not None else {}
+                kind, res = isolated(PEERS[peer], P, F, 20, timeout=900, **kw)
+                if kind != "ok":
+                    record["accuracy"].append(dict(method=peer, surface=surf, noise=noise,
+                                                   n=n, k=20, order=deg, failed=res))
+                    continue
+                sel = res.get("sel")
+                m_kw = {"sel": sel} if sel is not None else {}
+                npts = len(sel) if sel is not None else n
+                entry = dict(method=peer, surface=surf, noise=noise, n=n, k=20, order=deg,
+                             pts_per_s=npts / res["t_total"],
+                             **metrics(data, res.get("normals"), res.get("H"), res.get("K"),
+                                       **m_kw))
+                if border is not None and res.get("H") is not None:
+                    bsel = border if sel is None else np.intersect1d(border, sel)
+                    entry["border"] = metrics(data, res.get("normals"), res.get("H"), None,
+                                              sel=bsel)
+                record["accuracy"].append(entry)
+
+    # ---------------------------------------------------------------- parsimony
+    data = make_surface("torus", ref_size, 0.001)
+    P = data.noisy_points
+    n = len(P)
+    pars = []
+    settings = [dict(k=k, order=2) for k in park] + [
+        dict(k=20, order="auto"), dict(k=100, order="auto"),
+        dict(k="auto", order=2), dict(k="auto", order="auto"),
+    ]
+    for st in tqdm(settings, desc="parsimony", unit="setting"):
+        r, dt = run_polygeo(P, None, st["k"], st["order"])
+        sgn = np.sign(np.einsum("ij,ij->i", r.normals, data.normals))
+        pars.append(dict(k=st["k"], order=st["order"], pts_per_s=n / dt,
+                         median_k=float(np.median(r.n_neighbors)),
+                         order_histogram=np.bincount(r.order, minlength=5).tolist(),
+                         **metrics(data, r.normals, r.mean_curvature, r.gaussian_curvature,
+                                   h_sign=sgn)))
+    record["parsimony"] = {"surface": "torus", "noise": 0.001, "n": n, "runs": pars}
+
+    # ---------------------------------------------------------------- robustness
+    if not args.no_robustness:
+        record["robustness"] = run_robustness()
+        record["robustness_legend"] = classify.__doc__
+        _print_robustness(record["robustness"])
+
+    path = out_dir / "bm_jets.json"
+    with open(path, "w") as fh:
+        json.dump(record, fh, indent=1, default=_json_default)
+    png = out_dir / "bm_jets.png"
+    chart(record, png)
+    print(f"wrote {path} and {png}")
+    return 0
+
+
+def _json_default(o):
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
+
+
+def _print_speed(speed):
+    pg = speed["polygeo"]
+    print(f"speed reference: torus, {speed['n_points']} points, k=20, degree 2")
+    for key in ("knn_pts_per_s", "fit_stage_pts_per_s", "jets_fit_alone_pts_per_s",
+                "pipeline_pts_per_s", "pipeline_with_orientation_pts_per_s"):
+        print(f"  polygeo {key:<40} {pg[key]:>12,.0f}")
+    for peer in ("numpy_jets", "cgal_jet_normals", "open3d_pca_normals"):
+        v = speed.get(peer, {})
+        if "pipeline_pts_per_s" in v:
+            print(f"  {peer:<48} {v['pipeline_pts_per_s']:>12,.0f}  "
+                  f"normal mean {v.get('normal_mean_deg', float('nan')):.4f} deg")
+    print(f"  polygeo normal mean {pg['normal_mean_deg']:.4f} deg; ratios {speed['ratios']}")
+
+
+def _print_robustness(table):
+    methods = sorted({m for row in table.values() for m in row})
+    print("robustness:")
+    print("  " + "case".ljust(28) + "".join(m[:14].ljust(16) for m in methods))
+    for case, row in table.items():
+        print("  " + case.ljust(28) + "".join(
+            str(row.get(m, {}).get("outcome", "-"))[:14].ljust(16) for m in methods))
+
+
+def chart(record, png):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    acc = [a for a in record["accuracy"] if "pts_per_s" in a]
+    fig, axes = plt.subplots(1, 3, figsize=(18, 5.5))
+    ax_n, ax_h, ax_p = axes
+    size = max(a["n"] for a in acc) if acc else 0
+    sel = [a for a in acc if a["surface"] == "torus" and a["noise"] == 0.001 and a["n"] == size]
+    if not sel:
+        sel = [a for a in acc if a["n"] == size]
+    methods = sorted({a["method"] for a in sel})
+    for m in methods:
+        rows = [a for a in sel if a["method"] == m]
+        if m == "polygeo":
+            for order in sorted({a["order"] for a in rows}):
+                rr = sorted([a for a in rows if a["order"] == order], key=lambda a: a["k"])
+                x = [a["pts_per_s"] for a in rr]
+                ax_n.plot(x, [a["normal_median_deg"] for a in rr], "o-",
+                          label=f"polygeo order {order} (k={','.join(str(a['k']) for a in rr)})")
+                ax_h.plot(x, [a.get("H_rel_median") or np.nan for a in rr], "o-",
+                          label=f"polygeo order {order}")
+        else:
+            rr = sorted(rows, key=lambda a: (a.get("order") or 0))
+            x = [a["pts_per_s"] for a in rr]
+            ax_n.plot(x, [a.get("normal_median_deg", np.nan) for a in rr], "s--", label=m)
+            ax_h.plot(x, [a.get("H_rel_median") or np.nan for a in rr], "s--", label=m)
+    for ax, t in ((ax_n, "median normal error [deg]"), (ax_h, "median relative error of H")):
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("throughput [points/s]")
+        ax.set_ylabel(t)
+        ax.grid(True, which="both", alpha=0.3)
+    ax_n.set_title(f"torus, {size} vertices, noise 0.1% of the diagonal")
+    ax_n.legend(fontsize=7)
+    pars = record.get("parsimony", {}).get("runs", [])
+    for p in pars:
+        auto = p["k"] == "auto" or p["order"] == "auto"
+        ax_p.scatter(p["pts_per_s"], p.get("H_rel_median") or np.nan,
+                     marker="*" if auto else "o", s=120 if auto else 40,
+                     color="C3" if auto else "C0")
+        ax_p.annotate(f"k={p['k']}, n={p['order']}", (p["pts_per_s"], p.get("H_rel_median")),
+                      fontsize=7)
+    ax_p.set_xscale("log")
+    ax_p.set_yscale("log")
+    ax_p.set_xlabel("throughput [points/s]")
+    ax_p.set_ylabel("median relative error of H")
+    ax_p.set_title("parsimony: fixed (o) vs automatic (*) k / order, 0.1% noise")
+    ax_p.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    try:
+        sys.exit(main())
+    except KeyboardInterrupt:  # pragma: no cover
+        traceback.print_exc()
+        sys.exit(130)
