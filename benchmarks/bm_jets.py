@@ -233,8 +233,10 @@ def peer_igl(P, F, k, rings=2):
     import igl
 
     t = time.perf_counter()
-    pd1, pd2, pv1, pv2, *_ = igl.principal_curvature(P, F, radius=int(rings), use_k_ring=True)
-    normals = igl.per_vertex_normals(P, F)
+    V = np.ascontiguousarray(P, dtype=np.float64)
+    Fi = np.ascontiguousarray(F, dtype=np.int64)
+    pd1, pd2, pv1, pv2, *_ = igl.principal_curvature(V, Fi, int(rings), True)
+    normals = igl.per_vertex_normals(V, Fi)
     dt = time.perf_counter() - t
     # libigl: positive on a sphere with outward faces; polygeo: negative (bends away from n)
     k1, k2 = -np.asarray(pv2), -np.asarray(pv1)
@@ -300,9 +302,35 @@ def _child(conn, fn, args, kwargs):
         conn.close()
 
 
+_CTX = None
+
+
+def start_forkserver() -> None:
+    """Start the fork server before any OpenMP runtime is used in this process.
+
+    Peers run in children forked from that clean server: forking this process after numba or
+    torch started OpenMP threads is unsafe (libgomp aborts the child), and a peer that
+    segfaults must not end the benchmark.
+    """
+    global _CTX
+    import importlib.util
+
+    ctx = mp.get_context("forkserver")
+    mods = ["numpy", "scipy.spatial", "polygeo.io"]
+    mods += [m for m in ("CGAL", "open3d", "igl", "pyvista", "trimesh")
+             if importlib.util.find_spec(m) is not None]
+    main_mod = sys.modules.get("__main__")
+    if main_mod is not None and getattr(main_mod, "__file__", None):
+        mods = ["__main__", *mods]
+    ctx.set_forkserver_preload(mods)
+    _CTX = ctx
+
+
 def isolated(fn, *args, timeout=300.0, **kwargs):
-    """Run ``fn`` in a forked child; return ('ok', result) / ('error', msg) / ('crash', msg)."""
-    ctx = mp.get_context("fork")
+    """Run ``fn`` in a child process; return ('ok', result) / ('error', msg) / ('crash', msg)."""
+    if _CTX is None:
+        start_forkserver()
+    ctx = _CTX
     a, b = ctx.Pipe(duplex=False)
     p = ctx.Process(target=_child, args=(b, fn, args, kwargs))
     p.start()
@@ -495,7 +523,10 @@ def run_robustness(timeout=180.0):
                 key = (method, id(case["clean"][0]))
                 if key not in clean_cache:
                     cp, cf = case["clean"]
-                    clean_cache[key] = isolated(fn, cp, cf, 20, timeout=timeout)
+                    if method == "polygeo":
+                        clean_cache[key] = ("ok", fn(cp, cf, 20))
+                    else:
+                        clean_cache[key] = isolated(fn, cp, cf, 20, timeout=timeout)
                 ck, ref = clean_cache[key]
                 if ck != "ok":
                     row[method] = {"outcome": "clean run failed", "detail": str(ref)[:200]}
@@ -523,6 +554,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-peers", action="store_true", help="skip the peer libraries")
     ap.add_argument("--no-robustness", action="store_true", help="skip the robustness table")
     args = ap.parse_args(argv)
+    start_forkserver()
+    isolated(np.zeros, 1)  # launch the server now, while this process is still thread-free
     from tqdm.auto import tqdm
 
     import polygeo
