@@ -18,7 +18,7 @@ __all__ = ["pca_frames_numba"]
 _CHUNK = 512
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _jacobi3(a, v):
     """Diagonalise the symmetric 3x3 ``a`` in place; eigenvectors into the columns of ``v``."""
     for i in range(3):
@@ -57,7 +57,7 @@ def _jacobi3(a, v):
                     v[k, q] = s * vkp + c * vkq
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _sign_of_largest(x, y, z):
     """-1.0 when the largest-magnitude component (first on ties) is negative, else 1.0."""
     ax, ay, az = abs(x), abs(y), abs(z)

@@ -27,7 +27,7 @@ _ILL = int(Status.ILL_CONDITIONED)
 _CHUNK = 256
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _ncoef(o):
     return (o + 1) * (o + 2) // 2
 
@@ -35,7 +35,7 @@ def _ncoef(o):
 def _make_small(mc: int):
     """Small dense routines for an m x m system; ``mc > 0`` fixes m at compile time (unrolled)."""
 
-    @nb.njit(cache=True, inline="always")
+    @nb.njit(cache=True, inline="always" if mc > 0 else "never")
     def factor(mom, ep, eq, mv, N, D, L, Ld, Linv):
         """Equilibrate, factor and bound the condition; inf when singular / not PD."""
         m = mc if mc > 0 else mv
@@ -86,7 +86,7 @@ def _make_small(mc: int):
             c = math.inf
         return c
 
-    @nb.njit(cache=True, inline="always")
+    @nb.njit(cache=True, inline="always" if mc > 0 else "never")
     def solve(L, Ld, mv, b, x):
         """Solve L L^T x = b."""
         m = mc if mc > 0 else mv
@@ -105,7 +105,6 @@ def _make_small(mc: int):
 
 
 _factor_any, _solve_any = _make_small(0)
-_factor3, _solve3 = _make_small(3)
 _factor6, _solve6 = _make_small(6)
 
 
@@ -113,8 +112,6 @@ _factor6, _solve6 = _make_small(6)
 def _factor(mom, ep, eq, m, N, D, L, Ld, Linv):
     if m == 6:
         return _factor6(mom, ep, eq, m, N, D, L, Ld, Linv)
-    if m == 3:
-        return _factor3(mom, ep, eq, m, N, D, L, Ld, Linv)
     return _factor_any(mom, ep, eq, m, N, D, L, Ld, Linv)
 
 
@@ -122,31 +119,8 @@ def _factor(mom, ep, eq, m, N, D, L, Ld, Linv):
 def _solve(L, Ld, m, b, x):
     if m == 6:
         _solve6(L, Ld, m, b, x)
-    elif m == 3:
-        _solve3(L, Ld, m, b, x)
     else:
         _solve_any(L, Ld, m, b, x)
-
-
-@nb.njit(cache=True)
-def _rank(mom, ep, eq, m, max_cond):
-    """Numerical rank of the equilibrated normal matrix (eigenvalue count)."""
-    N = np.zeros((m, m))
-    D = np.ones(m)
-    for a in range(m):
-        d = mom[2 * ep[a], 2 * eq[a]]
-        if d > 0.0:
-            D[a] = 1.0 / math.sqrt(d)
-    for a in range(m):
-        for b in range(m):
-            N[a, b] = mom[ep[a] + ep[b], eq[a] + eq[b]] * D[a] * D[b]
-    lam = np.linalg.eigvalsh(N)
-    top = max(lam[m - 1], 1e-300)
-    r = 0
-    for i in range(m):
-        if lam[i] > top / (max_cond * max_cond):
-            r += 1
-    return r
 
 
 @nb.njit(cache=True, inline="always")
@@ -164,7 +138,8 @@ def _is_valid(uv, z, w, has_w, mask, has_mask, b, k):
     return True
 
 
-@nb.njit(cache=True, inline="always")
+
+@nb.njit(cache=True)
 def _moments(uv, z, w, has_w, ok, b, K, ih, mom, rhs, pu, pv, n2, M, ep, eq):
     """Weighted moments sum w su^p sv^q (p + q <= n2) and right-hand side, any order."""
     for p in range(n2 + 1):
@@ -252,7 +227,7 @@ def _moments2(uv, z, w, has_w, ok, b, K, ih, mom, rhs):
     rhs[5] = r5
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _residual(uv, z, w, has_w, ok, b, K, ih, x, m, o, pu, pv, ep, eq):
     """Weighted sum of squared residuals and of weights, any order."""
     sw = 0.0
@@ -422,7 +397,7 @@ def _fit_kernel(uv, z, w, has_w, mask, has_mask, scale, has_scale, order, fallba
             cond[b] = creq
             hout[b] = h
             count[b] = cnt
-            rank[b] = M if st == _OK else _rank(mom, ep, eq, M, max_cond)
+            rank[b] = M if st == _OK else -1  # filled in by the caller
 
 
 def fit_numba(uv, z, w, mask, s, order, fallback, max_cond, refine_above):
@@ -463,6 +438,21 @@ def fit_numba(uv, z, w, mask, s, order, fallback, max_cond, refine_above):
                     bool(fallback), float(max_cond), float(refine_above), ep, eq, coeffs, fitted,
                     status, cond, resid, h, count, rank)
     out = [torch.from_numpy(a) for a in (coeffs, resid, rank, cond, h, status, fitted, count)]
+    flagged = np.nonzero(rank < 0)[0]
+    if flagged.size:
+        # numerical rank of the (rare) rank-deficient items, as the torch backend computes it
+        from .jets import _equilibrate, _normal_system, _numerical_rank, _valid_mask
+
+        bt = torch.from_numpy(flagged)
+        uvb, zb = uv[bt].detach().to(torch.float64), z[bt].detach().to(torch.float64)
+        wb = None if w is None else w[bt].detach()
+        vb = _valid_mask(uvb, zb, wb, None if mask is None else mask[bt])
+        uvb = torch.where(vb[..., None], uvb, torch.zeros_like(uvb))
+        zb = torch.where(vb, zb, torch.zeros_like(zb))
+        wb = vb.to(torch.float64) if wb is None else torch.where(vb, wb, torch.zeros_like(wb))
+        su = uvb / out[4][bt][:, None, None]
+        Ne = _equilibrate(_normal_system(su, zb, wb, order)[2])[1]
+        out[2][bt] = _numerical_rank(Ne, max_cond)
     if not fallback:
         bad = np.nonzero(status != _OK)[0]
         if bad.size:
