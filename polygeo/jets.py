@@ -18,14 +18,15 @@ and the coefficients are unscaled (``a_pq /= h**(p+q)``). The solver forms the n
 from the weighted moments, equilibrates them (unit diagonal), factors them by Cholesky, estimates
 the condition number, and applies one step of iterative refinement with the true residual to
 the items whose condition number calls for it (accuracy close to a QR solve at a fraction of its
-cost). Items whose system is singular or too
-ill-conditioned for the requested order are answered with the highest lower order that is well
-posed (``fallback=True``) or with the minimum-norm solution (``fallback=False``), and flagged
-through :class:`polygeo.status.Status`; no item ever returns NaN.
+cost). Items whose system is singular or too ill-conditioned for the requested order are
+answered with the highest lower order that is well posed (``fallback=True``) or with the
+minimum-norm solution (``fallback=False``), and flagged through :class:`polygeo.status.Status`;
+no item ever returns NaN.
 
 Two interchangeable backends compute the same thing: a pure-torch one (differentiable end to end
 with respect to ``uv``, ``z`` and ``weights``) and a compiled numba one (used when no gradient is
-needed; about two orders of magnitude faster for large batches).
+needed; tens of times faster for large batches, multi-threaded with numba's thread count; the
+first call compiles it, later processes load it from numba's on-disk cache).
 """
 
 from __future__ import annotations
