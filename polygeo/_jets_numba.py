@@ -166,6 +166,40 @@ def _moments(uv, z, w, has_w, ok, b, K, ih, mom, rhs, pu, pv, n2, M, ep, eq):
 
 
 @nb.njit(cache=True, inline="always")
+def _moments1(uv, z, w, has_w, ok, b, K, ih, mom, rhs):
+    """Unrolled moments of a 1-jet (degree <= 2) and its right-hand side."""
+    m00 = m10 = m01 = m20 = m11 = m02 = 0.0
+    r0 = r1 = r2 = 0.0
+    for k in range(K):
+        if not ok[k]:
+            continue
+        su = uv[b, k, 0] * ih
+        sv = uv[b, k, 1] * ih
+        wk = w[b, k] if has_w else 1.0
+        wu = wk * su
+        wv = wk * sv
+        m00 += wk
+        m10 += wu
+        m01 += wv
+        m20 += wu * su
+        m11 += wu * sv
+        m02 += wv * sv
+        zk = z[b, k]
+        r0 += wk * zk
+        r1 += wu * zk
+        r2 += wv * zk
+    mom[0, 0] = m00
+    mom[1, 0] = m10
+    mom[0, 1] = m01
+    mom[2, 0] = m20
+    mom[1, 1] = m11
+    mom[0, 2] = m02
+    rhs[0] = r0
+    rhs[1] = r1
+    rhs[2] = r2
+
+
+@nb.njit(cache=True, inline="always")
 def _moments2(uv, z, w, has_w, ok, b, K, ih, mom, rhs):
     """Unrolled moments of a 2-jet (degree <= 4) and its right-hand side."""
     m00 = m10 = m01 = m20 = m11 = m02 = 0.0
@@ -316,6 +350,8 @@ def _fit_kernel(uv, z, w, has_w, mask, has_mask, scale, has_scale, order, fallba
             # weighted moments of the preconditioned parameters
             if order == 2:
                 _moments2(uv, z, w, has_w, ok, b, K, ih, mom, rhs)
+            elif order == 1:
+                _moments1(uv, z, w, has_w, ok, b, K, ih, mom, rhs)
             else:
                 _moments(uv, z, w, has_w, ok, b, K, ih, mom, rhs, pu, pv, n2, M, ep, eq)
             # solve, falling back to lower orders
