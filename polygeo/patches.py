@@ -799,15 +799,17 @@ class PatchSet:
     ) -> PatchSet:
         from . import stn
 
-        labels = torch.from_numpy(np.array(part.labels, np.int64))
+        lab_np = np.array(part.labels, np.int64)
+        labels = torch.from_numpy(lab_np)
         K = int(part.n_patches)
-        counts = torch.bincount(labels, minlength=K)
+        counts = np.bincount(lab_np, minlength=K)
         P = int(counts.max())
-        perm = torch.argsort(labels, stable=True)
-        starts = torch.cumsum(counts, 0) - counts
-        pos = torch.arange(len(labels)) - starts[labels[perm]]
-        index = torch.full((K, P), -1, dtype=torch.int64)
-        index[labels[perm], pos] = perm
+        perm = np.argsort(lab_np, kind="stable")
+        starts = np.cumsum(counts) - counts
+        pos = np.arange(len(lab_np)) - starts[lab_np[perm]]
+        index_np = np.full((K, P), -1, dtype=np.int64)
+        index_np[lab_np[perm], pos] = perm
+        index = torch.from_numpy(index_np)
         mask = index >= 0
         pts = v[index.clamp_min(0)]  # (K, P, 3)
         ref = None
@@ -818,7 +820,7 @@ class PatchSet:
             pf = v[f]
             cr = torch.linalg.cross(pf[:, 1] - pf[:, 0], pf[:, 2] - pf[:, 0])
             ref = torch.zeros(K, 3, dtype=torch.float64).index_add_(0, labels[f[:, 0]], cr)
-        can = stn.canonicalize(pts, mask, reference_normal=ref)
+        can = stn._canonicalize(pts, mask, ref)
         local, ori = can.local, can.orientation
         res_order = 4 if isinstance(order, str) else int(order)
         if orient == "stn":

@@ -139,6 +139,11 @@ def canonicalize(points: Any, mask: Any = None, *, reference_normal: Any = None)
         On non-numeric points or a non-bool mask.
     """
     p, m = _points_mask(points, mask)
+    return _canonicalize(p, m, reference_normal)
+
+
+def _canonicalize(p: torch.Tensor, m: torch.Tensor, reference_normal: Any = None) -> Canonical:
+    """:func:`canonicalize` without input validation (for already checked tensors)."""
     fr = pca_frames(p, mask=m, reference_normal=reference_normal)
     T, R = fr.centroid, fr.rotation
     d = torch.where(m[..., None], p - T[:, None, :], torch.zeros_like(p))

@@ -167,7 +167,7 @@ def test_boundary_gap_shrinks_with_order(sphere5):
 
 def test_foldover_detected_where_the_patch_is_not_a_height_graph():
     # a sheet bent into a 300-degree arc cannot be a graph over any plane
-    x, y, f = _grid_sheet(40, 10, 1.0, 0.3)
+    x, y, f = _grid_sheet(40, 20, 1.0, 1.5)
     t = (x + 1) / 2 * np.deg2rad(300)
     v = np.stack([np.cos(t), y, np.sin(t)], 1)
     ps = PatchSet.fit(v, f, n_patches=1, order=4)
