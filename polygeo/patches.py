@@ -692,7 +692,9 @@ class PatchSet:
             ``tol=None``, the order minimising the Bayesian information criterion
             ``n log(RSS / n) + M log(n)``.
         orient : {"pca", "stn", "optimize"}
-            Canonicalisation (see :mod:`polygeo.stn`).
+            Canonicalisation (see :mod:`polygeo.stn`): the PCA frame, refined by the STN
+            (kept per patch only where it lowers the height residual of order ``order``, or
+            4 for ``"auto"``) or by ``optimize_steps`` Adam steps on that residual.
         normals : array_like, optional
             ``(V, 3)`` input normals. They orient the patch frames (default: the faces' area
             vectors; PCA's sign convention for a point cloud) and score normal errors
@@ -825,6 +827,12 @@ class PatchSet:
         res_order = 4 if isinstance(order, str) else int(order)
         if orient == "stn":
             Q = stn.stn_rotations(local, mask, stn_model)
+            # keep the network's frame only where it lowers the residual (never worse than PCA)
+            with torch.no_grad():
+                r_pca, _ = stn.height_residual(local, mask, None, res_order)
+                r_stn, _ = stn.height_residual(local, mask, Q, res_order)
+            eye = torch.eye(3, dtype=Q.dtype).expand_as(Q)
+            Q = torch.where((r_stn < r_pca)[:, None, None], Q, eye)
         elif orient == "optimize":
             Q = stn.optimize_rotations(local, mask, res_order, steps=optimize_steps).rotation
         else:

@@ -15,6 +15,7 @@ from polygeo.patches import (
     subdivide_barycentric,
 )
 from polygeo.status import Status
+from polygeo.stn import PatchSTN
 
 
 @pytest.fixture(scope="module")
@@ -421,3 +422,14 @@ def test_surface_chamfer_matches_brute_force_point_to_triangle():
     d = chamfer_distance(s.points, s.faces, 1.05 * s.points, s.faces, mode="surface")
     # normalised by the reference's radius 1: every point is about 0.05 off, both ways
     np.testing.assert_allclose(d, 2 * 0.05**2, rtol=0.05)
+
+
+def test_stn_orientation_is_never_worse_than_pca():
+    v, f = syn.skirt_mesh(60, 30, seed=1)
+    part = partition_mesh(v, f, 12, seed=0)
+    pca = PatchSet.fit(v, f, partition=part, order=3)
+    net = PatchSTN((8,), (8,))
+    with torch.no_grad():
+        net.out.weight.normal_(0, 1.0)  # a network that rotates patches at random
+    st = PatchSet.fit(v, f, partition=part, order=3, orient="stn", stn_model=net)
+    assert (st.residual <= pca.residual + 1e-12).all()
