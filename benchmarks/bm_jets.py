@@ -119,21 +119,27 @@ def run_polygeo(P, F, k, order, orient="none", **kw):
     from polygeo.estimate import differential_quantities
 
     t = time.perf_counter()
+    c = time.process_time()
     r = differential_quantities(P, k=k, order=order, orient=orient, progress=False, **kw)
     dt = time.perf_counter() - t
+    run_polygeo.last_cpu = time.process_time() - c
     return r, dt
 
 
 def polygeo_stages(P, k, order, repeats=3):
     """Median times of k-NN, fitting stage (frames + fit + geometry), jets.fit alone."""
     import torch
+    from scipy.spatial import cKDTree
 
     from polygeo import estimate as E
     from polygeo import jets
     from polygeo.neighbors import PointIndex
 
-    t_knn, t_stage, t_fit = [], [], []
+    t_knn, t_stage, t_fit, t_kd = [], [], [], []
     for _ in range(repeats):
+        t0 = time.perf_counter()
+        cKDTree(P).query(P, k, workers=-1)  # the scipy k-NN, timed alternately with ours
+        t_kd.append(time.perf_counter() - t0)
         t0 = time.perf_counter()
         idx = PointIndex(P)
         q = idx.spatial_order()
@@ -152,6 +158,7 @@ def polygeo_stages(P, k, order, repeats=3):
         t_knn.append(t1 - t0)
         t_stage.append(t4 - t1)
         t_fit.append(t3 - t2)
+    polygeo_stages.last_ckdtree = float(np.median(t_kd))
     return float(np.median(t_knn)), float(np.median(t_stage)), float(np.median(t_fit))
 
 
@@ -160,6 +167,7 @@ def numpy_baseline(P, k, order=2):
     from scipy.spatial import cKDTree
 
     t0 = time.perf_counter()
+    c0 = time.process_time()
     _, idx = cKDTree(P).query(P, k, workers=-1)
     t1 = time.perf_counter()
     X = P[idx] - P[:, None, :]
@@ -193,7 +201,8 @@ def numpy_baseline(P, k, order=2):
     K = (L * N - M**2) / det
     normals = np.einsum("qij,qj->qi", R, n_loc)
     t2 = time.perf_counter()
-    return {"normals": normals, "H": H, "K": K, "t_knn": t1 - t0, "t_total": t2 - t0}
+    return {"normals": normals, "H": H, "K": K, "t_knn": t1 - t0, "t_total": t2 - t0,
+            "cpu_s": time.process_time() - c0}
 
 
 def peer_cgal(P, F, k, degree=2):
@@ -209,14 +218,16 @@ def peer_cgal(P, F, k, degree=2):
             ps.insert(Point_3(x, y, z))
         ps.add_normal_map()
         t = time.perf_counter()
+        c = time.process_time()
         jet_estimate_normals(ps, int(k), degree_fitting=int(degree))
         dt = time.perf_counter() - t
+        cpu = time.process_time() - c
         dst = os.path.join(d, "out.ply")
         ps.write(dst)
         back = read_points(dst)
     if back.points.shape != P.shape or not np.allclose(back.points, P, equal_nan=True):
         raise RuntimeError("CGAL reordered or dropped points")
-    return {"normals": back.normals, "t_total": dt}
+    return {"normals": back.normals, "t_total": dt, "cpu_s": cpu}
 
 
 def peer_open3d(P, F, k):
@@ -553,6 +564,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=str(RESULTS), help="results folder")
     ap.add_argument("--no-peers", action="store_true", help="skip the peer libraries")
     ap.add_argument("--no-robustness", action="store_true", help="skip the robustness table")
+    ap.add_argument("--sections", default="speed,accuracy,parsimony,robustness",
+                    help="comma-separated parts to run (default: all)")
     args = ap.parse_args(argv)
     start_forkserver()
     isolated(np.zeros, 1)  # launch the server now, while this process is still thread-free
@@ -599,24 +612,57 @@ def main(argv=None) -> int:
     run_polygeo(warm.points, warm.faces, 20, 2)
     numpy_baseline(warm.points, 20, 2)
 
-    # ---------------------------------------------------------------- speed reference
+    sections = set(args.sections.split(","))
+    if args.no_robustness:
+        sections.discard("robustness")
+    record["sections"] = sorted(sections)
+    if "speed" in sections:
+        _speed_section(record, ref_size, peers)
+    if "accuracy" in sections:
+        _accuracy_section(record, surfaces, noises, sizes, orders, ks, peers, tqdm)
+    if "parsimony" in sections:
+        _parsimony_section(record, ref_size, park, tqdm)
+    if "robustness" in sections:
+        record["robustness"] = run_robustness()
+        record["robustness_legend"] = classify.__doc__
+        _print_robustness(record["robustness"])
+    path = out_dir / "bm_jets.json"
+    if path.exists() and sections != {"speed", "accuracy", "parsimony", "robustness"}:
+        with open(path) as fh:  # keep the parts of an earlier run that were not re-run
+            old = json.load(fh)
+        for key in ("speed_reference", "accuracy", "parsimony", "robustness",
+                    "robustness_legend"):
+            if key in old and not record.get(key):
+                record[key] = old[key]
+    with open(path, "w") as fh:
+        json.dump(record, fh, indent=1, default=_json_default)
+    png = out_dir / "bm_jets.png"
+    chart(record, png)
+    print(f"wrote {path} and {png}")
+    return 0
+
+
+def _speed_section(record, ref_size, peers):
     ref = make_surface("torus", ref_size, 0.0)
     P = ref.noisy_points
     n = len(P)
     speed = {"surface": "torus", "n_points": n, "k": 20, "order": 2}
     t_knn, t_stage, t_fit = polygeo_stages(P, 20, 2, repeats=3)
-    totals, totals_or = [], []
+    totals, totals_or, cpus = [], [], []
     for _ in range(3):
         r, dt = run_polygeo(P, None, 20, 2, orient="none")
         totals.append(dt)
+        cpus.append(run_polygeo.last_cpu)
         r2, dt2 = run_polygeo(P, None, 20, 2, orient="auto")
         totals_or.append(dt2)
     speed["polygeo"] = {
         "knn_pts_per_s": n / t_knn,
+        "scipy_ckdtree_knn_pts_per_s": n / polygeo_stages.last_ckdtree,
         "fit_stage_pts_per_s": n / t_stage,
         "jets_fit_alone_pts_per_s": n / t_fit,
         "pipeline_pts_per_s": n / float(np.median(totals)),
         "pipeline_with_orientation_pts_per_s": n / float(np.median(totals_or)),
+        "pipeline_pts_per_cpu_s": n / float(np.median(cpus)),
         "times_s": {"knn": t_knn, "fit_stage": t_stage, "jets_fit": t_fit,
                     "pipeline": totals, "pipeline_with_orientation": totals_or},
         **metrics(ref, r.normals, r.mean_curvature, r.gaussian_curvature,
@@ -625,6 +671,8 @@ def main(argv=None) -> int:
     nb_t = [numpy_baseline(P, 20, 2) for _ in range(3)]
     tt = float(np.median([x["t_total"] for x in nb_t]))
     speed["numpy_jets"] = {"pipeline_pts_per_s": n / tt,
+                           "pipeline_pts_per_cpu_s":
+                               n / float(np.median([x["cpu_s"] for x in nb_t])),
                            "knn_pts_per_s": n / float(np.median([x["t_knn"] for x in nb_t])),
                            **metrics(ref, nb_t[0]["normals"], nb_t[0]["H"], nb_t[0]["K"],
                                      h_sign=np.sign(np.einsum("ij,ij->i", nb_t[0]["normals"],
@@ -644,6 +692,9 @@ def main(argv=None) -> int:
             continue
         tt = float(np.median([x["t_total"] for x in runs]))
         speed[peer] = {"pipeline_pts_per_s": n / tt, **metrics(ref, runs[0]["normals"])}
+        if "cpu_s" in runs[0]:
+            speed[peer]["pipeline_pts_per_cpu_s"] = n / float(np.median([x["cpu_s"]
+                                                                         for x in runs]))
     cg = speed.get("cgal_jet_normals", {}).get("pipeline_pts_per_s")
     base = speed["numpy_jets"]["pipeline_pts_per_s"]
     pg = speed["polygeo"]
@@ -653,12 +704,21 @@ def main(argv=None) -> int:
         "pipeline_with_orientation_vs_cgal": (
             pg["pipeline_with_orientation_pts_per_s"] / cg if cg else None
         ),
-        "knn_vs_numpy_ckdtree": pg["knn_pts_per_s"] / speed["numpy_jets"]["knn_pts_per_s"],
+        "knn_vs_scipy_ckdtree": pg["knn_pts_per_s"] / pg["scipy_ckdtree_knn_pts_per_s"],
+        "pipeline_per_cpu_second_vs_cgal": (
+            pg["pipeline_pts_per_cpu_s"] / speed["cgal_jet_normals"]["pipeline_pts_per_cpu_s"]
+            if speed.get("cgal_jet_normals", {}).get("pipeline_pts_per_cpu_s") else None
+        ),
     }
+    try:
+        speed["load_average"] = os.getloadavg()
+    except OSError:
+        pass
     record["speed_reference"] = speed
     _print_speed(speed)
 
-    # ---------------------------------------------------------------- accuracy grid
+
+def _accuracy_section(record, surfaces, noises, sizes, orders, ks, peers, tqdm):
     grid = [(s, nz, sz) for sz in sizes for s in surfaces for nz in noises]
     bar = tqdm(grid, desc="accuracy grid", unit="dataset")
     for surf, noise, size in bar:
@@ -683,7 +743,13 @@ def main(argv=None) -> int:
                                               sel=border, h_sign=sgn)
                 record["accuracy"].append(entry)
         for order in orders:
-            nbres = numpy_baseline(P, 20, order) if order >= 1 else None
+            try:
+                nbres = numpy_baseline(P, 20, order)
+            except Exception as exc:  # a singular neighbourhood system stops the baseline
+                record["accuracy"].append(dict(method="numpy_jets", surface=surf, noise=noise,
+                                               n=n, k=20, order=order,
+                                               failed=f"{type(exc).__name__}: {exc}"))
+                continue
             sgn = np.sign(np.einsum("ij,ij->i", nbres["normals"], data.normals))
             entry = dict(method="numpy_jets", surface=surf, noise=noise, n=n, k=20, order=order,
                          pts_per_s=n / nbres["t_total"],
@@ -717,7 +783,9 @@ def main(argv=None) -> int:
                                               sel=bsel)
                 record["accuracy"].append(entry)
 
-    # ---------------------------------------------------------------- parsimony
+
+
+def _parsimony_section(record, ref_size, park, tqdm):
     data = make_surface("torus", ref_size, 0.001)
     P = data.noisy_points
     n = len(P)
@@ -736,20 +804,6 @@ def main(argv=None) -> int:
                                    h_sign=sgn)))
     record["parsimony"] = {"surface": "torus", "noise": 0.001, "n": n, "runs": pars}
 
-    # ---------------------------------------------------------------- robustness
-    if not args.no_robustness:
-        record["robustness"] = run_robustness()
-        record["robustness_legend"] = classify.__doc__
-        _print_robustness(record["robustness"])
-
-    path = out_dir / "bm_jets.json"
-    with open(path, "w") as fh:
-        json.dump(record, fh, indent=1, default=_json_default)
-    png = out_dir / "bm_jets.png"
-    chart(record, png)
-    print(f"wrote {path} and {png}")
-    return 0
-
 
 def _json_default(o):
     if isinstance(o, (np.integer,)):
@@ -764,7 +818,8 @@ def _json_default(o):
 def _print_speed(speed):
     pg = speed["polygeo"]
     print(f"speed reference: torus, {speed['n_points']} points, k=20, degree 2")
-    for key in ("knn_pts_per_s", "fit_stage_pts_per_s", "jets_fit_alone_pts_per_s",
+    for key in ("knn_pts_per_s", "scipy_ckdtree_knn_pts_per_s", "fit_stage_pts_per_s",
+                "jets_fit_alone_pts_per_s", "pipeline_pts_per_cpu_s",
                 "pipeline_pts_per_s", "pipeline_with_orientation_pts_per_s"):
         print(f"  polygeo {key:<40} {pg[key]:>12,.0f}")
     for peer in ("numpy_jets", "cgal_jet_normals", "open3d_pca_normals"):

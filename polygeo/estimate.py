@@ -40,7 +40,6 @@ is a tensor requiring grad, or with ``backend="torch"``).
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -200,12 +199,13 @@ def _neg_largest(x, y, z):
     return z < 0.0
 
 
-def _frames_py(P, qidx, nbr, dist, kuse, uv, z, valid, R, count, radius):
+def _frames_py(P, qidx, nbr, dist, kuse, uv, z, valid, R, count, radius, work):
     """Local PCA frames and height coordinates of each query's neighbourhood.
 
     P (N,3) f64 points; qidx (Q,) query point indices; nbr/dist (Q,K) neighbours (nearest
     first, -1 padding); kuse: use the first kuse columns. Outputs: uv (Q,K,2), z (Q,K), valid
-    (Q,K), R (Q,3,3), count (Q,), radius (Q,) RMS distance of the used points to the query.
+    (Q,K), R (Q,3,3), count (Q,), radius (Q,) RMS distance of the used points to the query;
+    work (Q,3,3) scratch space.
     """
     Q, K = nbr.shape
     for i in nb.prange(Q):
@@ -248,8 +248,11 @@ def _frames_py(P, qidx, nbr, dist, kuse, uv, z, valid, R, count, radius):
                 rr += dx * dx + dy * dy + dz * dz
         count[i] = cnt
         radius[i] = math.sqrt(rr / cnt) if cnt > 0 else 0.0
-        a = np.zeros((3, 3))
-        v = np.empty((3, 3))
+        a = work[i]  # scratch rows (no allocation per point)
+        v = R[i]
+        for r in range(3):
+            for c in range(3):
+                a[r, c] = 0.0
         if cnt > 0:
             cx /= cnt
             cy /= cnt
@@ -405,11 +408,12 @@ class _Local:
         self.R = np.empty((Q, 3, 3))
         self.count = np.zeros(Q, dtype=np.int64)
         self.radius = np.zeros(Q)
+        work = np.empty((Q, 3, 3))
         if Q:
             kernel = _frames_par if Q >= _PARALLEL_MIN else _frames_ser
             kernel(
                 P, qidx, nbr, dist, int(kuse), self.uv, self.z, self.valid, self.R, self.count,
-                self.radius,
+                self.radius, work,
             )
 
 
@@ -541,7 +545,7 @@ def differential_quantities(
     orient: str = "auto",
     monge: bool = False,
     forms: bool = False,
-    batch_size: int = 65536,
+    batch_size: int = 131072,
     progress: bool | None = None,
     workers: int = -1,
     backend: str = "auto",
@@ -1052,7 +1056,3 @@ def _monge(coeffs, frame, P, dtype) -> dict[str, torch.Tensor]:
         "c": torch.where(ok[:, None], mf.c, nan),
     }
     return {k_: v.to(dtype) for k_, v in out.items()}
-
-
-def _default_threads() -> int:  # pragma: no cover - informational
-    return os.cpu_count() or 1

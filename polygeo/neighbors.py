@@ -133,7 +133,9 @@ def _put_self_first(index: np.ndarray, dist: np.ndarray, self_idx: np.ndarray) -
 
 
 def _grid_query_py(P, order, cstart, lo, h, nx, ny, nz, Q, qorder, k, out_i, out_d):
-    """Exact k-NN by expanding shells of cells of a uniform grid (P sorted into cells).
+    """Exact k-NN by expanding shells of cells of a uniform grid.
+
+    ``P`` holds the points sorted by cell (``P[s]`` is original point ``order[s]``).
 
     The search stops after shell r once the k-th best distance is within r * h plus the
     query's distance to its own cell's faces: every unvisited point is farther than that.
@@ -168,10 +170,9 @@ def _grid_query_py(P, order, cstart, lo, h, nx, ny, nz, Q, qorder, k, out_i, out
                         if x >= 0 and x < nx:
                             c = x + nx * (y + ny * z)
                             for s in range(cstart[c], cstart[c + 1]):
-                                p = order[s]
-                                ex = P[p, 0] - qx
-                                ey = P[p, 1] - qy
-                                ez = P[p, 2] - qz
+                                ex = P[s, 0] - qx  # P is sorted by cell: contiguous reads
+                                ey = P[s, 1] - qy
+                                ez = P[s, 2] - qz
                                 d2 = ex * ex + ey * ey + ez * ez
                                 if cnt < k:
                                     j = cnt
@@ -180,6 +181,7 @@ def _grid_query_py(P, order, cstart, lo, h, nx, ny, nz, Q, qorder, k, out_i, out
                                     j = k - 1
                                 else:
                                     continue
+                                p = order[s]
                                 while j > 0 and (
                                     out_d[qi, j - 1] > d2
                                     or (out_d[qi, j - 1] == d2 and out_i[qi, j - 1] > p)
@@ -200,6 +202,9 @@ def _grid_query_py(P, order, cstart, lo, h, nx, ny, nz, Q, qorder, k, out_i, out
                 break
         for j in range(cnt):
             out_d[qi, j] = math.sqrt(out_d[qi, j])
+        for j in range(cnt, k):
+            out_d[qi, j] = np.inf
+            out_i[qi, j] = -1
 
 
 _grid_query_par = nb.njit(cache=True, parallel=True)(_grid_query_py)
@@ -239,13 +244,14 @@ class _Grid:
         self.order = np.argsort(key, kind="stable")
         self.cstart = np.zeros(size + 1, dtype=np.int64)
         np.cumsum(np.bincount(key, minlength=size), out=self.cstart[1:])
-        self.lo, self.h, self.dims, self.pts = lo, h, dims, pts
+        self.lo, self.h, self.dims = lo, h, dims
+        self.sorted_pts = np.ascontiguousarray(pts[self.order])
         self.ok = True
 
     def query(self, q: np.ndarray, k: int, parallel: bool) -> tuple[np.ndarray, np.ndarray]:
         nq = q.shape[0]
-        out_i = np.full((nq, k), -1, dtype=np.int64)
-        out_d = np.full((nq, k), np.inf)
+        out_i = np.empty((nq, k), dtype=np.int64)
+        out_d = np.empty((nq, k))
         if nq == 0:
             return out_i, out_d
         qx = np.clip(((q - self.lo) / self.h).astype(np.int64), 0, self.dims - 1)
@@ -253,7 +259,7 @@ class _Grid:
         qorder = np.argsort(qkey, kind="stable")
         fn = _grid_query_par if parallel else _grid_query_ser
         nx, ny, nz = (int(d) for d in self.dims)
-        fn(self.pts, self.order, self.cstart, self.lo, self.h, nx, ny, nz, q, qorder, k,
+        fn(self.sorted_pts, self.order, self.cstart, self.lo, self.h, nx, ny, nz, q, qorder, k,
            out_i, out_d)
         return out_i, out_d
 
@@ -323,39 +329,39 @@ class PointIndex:
         it is then put in column 0 (ties among exact duplicates resolved in its favour).
         """
         qn = queries.shape[0]
-        index = np.full((qn, k), -1, dtype=np.int64)
-        dist = np.full((qn, k), np.inf, dtype=np.float64)
-        if k == 0 or self.tree is None or qn == 0:
-            return index, dist
+        if k == 0 or self.n_finite == 0 or qn == 0:
+            return np.full((qn, k), -1, dtype=np.int64), np.full((qn, k), np.inf)
         fin_q = np.isfinite(queries).all(axis=1)
-        if not fin_q.any():
-            return index, dist
-        kk = min(k, self.n_finite)
         all_q = bool(fin_q.all())
+        kk = min(k, self.n_finite)
         q_sel = queries if all_q else queries[fin_q]
         if self.grid is not None and not np.isfinite(upper) and kk <= 256:
+            # the grid kernel pads with -1 / inf itself and sees finite points only
             i, d = self.grid.query(np.ascontiguousarray(q_sel), kk, workers != 1)
+            missing = i < 0
         else:
             d, i = self.tree.query(q_sel, k=kk, workers=workers, distance_upper_bound=upper)
             d = np.asarray(d, dtype=np.float64).reshape(q_sel.shape[0], kk)
             i = np.asarray(i, dtype=np.int64).reshape(q_sel.shape[0], kk)
-        i = np.where(i < 0, self.n_finite, i)
-        missing = i >= self.n_finite
+            missing = i >= self.n_finite
+            i[missing] = -1
+            d[missing] = np.inf
         if self._map is not None:
-            i = self._map[np.minimum(i, self.n_finite - 1)]
-        i[missing] = -1
-        d[missing] = np.inf
-        if all_q:
-            index[:, :kk] = i
-            dist[:, :kk] = d
+            i = np.where(missing, -1, self._map[np.where(missing, 0, i)])
+        if all_q and kk == k:
+            index, dist = i, d
         else:
+            index = np.full((qn, k), -1, dtype=np.int64)
+            dist = np.full((qn, k), np.inf)
             index[fin_q, :kk] = i
             dist[fin_q, :kk] = d
         if self_index is not None:
-            rows = np.flatnonzero(fin_q)
+            self_index = np.asarray(self_index, dtype=np.int64)
+            bad = fin_q & (index[:, 0] != self_index)
+            rows = np.flatnonzero(bad)
             if rows.size:
                 sub_i, sub_d = index[rows], dist[rows]
-                _put_self_first(sub_i, sub_d, np.asarray(self_index, dtype=np.int64)[rows])
+                _put_self_first(sub_i, sub_d, self_index[rows])
                 index[rows], dist[rows] = sub_i, sub_d
         return index, dist
 
