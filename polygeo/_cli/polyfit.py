@@ -74,11 +74,16 @@ def _run(args: argparse.Namespace) -> int:
     level = 0 if args.resample is None else args.resample
     rv, rf = ps.resample(level)
     rv = rv.detach().numpy()
-    chamfer = None
+    chamfer = chamfer_floor = chamfer_surface = None
     if args.chamfer_samples and data.faces is not None:
-        chamfer = chamfer_distance(
-            data.points, data.faces, rv, rf, n_samples=args.chamfer_samples, seed=args.seed
+        kw = dict(n_samples=args.chamfer_samples, seed=args.seed)
+        chamfer = chamfer_distance(data.points, data.faces, rv, rf, **kw)
+        # the point protocol's sampling floor: the input against an independent sampling
+        chamfer_floor = chamfer_distance(
+            data.points, data.faces, data.points, data.faces, n_samples=args.chamfer_samples,
+            seed=args.seed + 1,
         )
+        chamfer_surface = chamfer_distance(data.points, data.faces, rv, rf, mode="surface", **kw)
     if args.mesh_out:
         write_ply(args.mesh_out, rv, rf)
     lines = [
@@ -101,7 +106,11 @@ def _run(args: argparse.Namespace) -> int:
             f"foldover share   {s['foldover_mean']:.4f} ({s['foldover_patches']} patches)"
         )
     if chamfer is not None:
-        lines.append(f"Chamfer x 1e3    {chamfer * 1e3:.4f} (resample level {level})")
+        lines.append(
+            f"Chamfer x 1e3    {chamfer * 1e3:.4f} (resample level {level}, unit sphere, "
+            f"{args.chamfer_samples} samples; sampling floor {chamfer_floor * 1e3:.4f}; "
+            f"point-to-surface {chamfer_surface * 1e3:.5f})"
+        )
     if "search" in ps.info:
         for rec in ps.info["search"]:
             lines.append(f"  K search       requested {rec['requested']}: {rec['patches']} "
@@ -109,8 +118,9 @@ def _run(args: argparse.Namespace) -> int:
     lines.append(f"wrote            {out}" + (f", {args.mesh_out}" if args.mesh_out else ""))
     print("\n".join(lines))
     if args.json:
-        rec = dict(s, chamfer=chamfer, fit_seconds=t_fit, n_coefficients=ps.n_coefficients,
-                   orient=ps.orient, resample_level=level)
+        rec = dict(s, chamfer=chamfer, chamfer_floor=chamfer_floor,
+                   chamfer_surface=chamfer_surface, fit_seconds=t_fit,
+                   n_coefficients=ps.n_coefficients, orient=ps.orient, resample_level=level)
         with open(args.json, "w") as fh:
             json.dump(rec, fh, indent=1)
     sys.stdout.flush()
