@@ -12,7 +12,7 @@ Deformations of the sheet (``--kind``), all functions of the time ``t`` in [0, 1
 ``roll``    isometric: one end rolls into a cylinder of shrinking radius
 ``swave``   isometric: an S-shaped wave travelling across the sheet
 ``fold``    isometric: a rounded fold along the diagonal closing to about 75 deg
-``cloth``   nearly isometric: moving Gaussian bumps and a travelling ripple (strain < 1 %)
+``cloth``   nearly isometric: moving Gaussian bumps and a travelling ripple (strain <= 1.2 %)
 ``small``   isometric: a gentle bend (test sequence, small deformation)
 ``rigid``   no deformation, rigid motion only (test sequence)
 
@@ -148,10 +148,10 @@ def deform(kind: str, ab: np.ndarray, t: float, size: tuple[float, float]) -> np
         out[:, :2] = ab
         z = np.zeros(len(ab))
         centres = [(-0.05 + 0.08 * t, 0.03), (0.06, -0.04 + 0.06 * t), (0.0, 0.0)]
-        amps = [0.008 * np.sin(np.pi * t + 0.3), -0.007, 0.006 * np.cos(np.pi * t)]
+        amps = [0.005 * np.sin(np.pi * t + 0.3), -0.0045, 0.004 * np.cos(np.pi * t)]
         for (cx, cy), a in zip(centres, amps):
             z += a * np.exp(-((ab[:, 0] - cx) ** 2 + (ab[:, 1] - cy) ** 2) / (2 * 0.045**2))
-        z += 0.003 * np.sin(2 * np.pi * (ab[:, 0] / 0.1 + ab[:, 1] / 0.25 - t))
+        z += 0.0015 * np.sin(2 * np.pi * (ab[:, 0] / 0.15 + ab[:, 1] / 0.25 - t))
         out[:, 2] = z
         return out
     if kind == "rigid":

@@ -43,7 +43,7 @@ from .losses import ImageTerms, Inextensibility, temporal_consistency
 from .metrics import frame_errors, summarize
 from .model import ORDER_AUTO, DeformationModel, build_model
 
-__all__ = ["SfTSettings", "SfTResult", "run_sft", "CHECKPOINT_NAME"]
+__all__ = ["SfTSettings", "SfTResult", "run_sft", "reconstruct_window", "CHECKPOINT_NAME"]
 
 #: File name of the checkpoint inside the output folder.
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -93,6 +93,9 @@ class SfTSettings:
         Soft rasterizer depth temperature.
     dtype : {"float32", "float64"}
         Optimisation dtype.
+    freeze : tuple of str
+        Parameters kept at their initial value (e.g. ``("d_alpha", "d_uv")`` optimises the
+        rigid motion alone).
     checkpoint_every : int
         Windows between checkpoints (0: none).
     overlays : int
@@ -125,6 +128,7 @@ class SfTSettings:
     sigma: float = 0.1
     gamma: float = 1e-4
     dtype: str = "float32"
+    freeze: tuple[str, ...] = ()
     checkpoint_every: int = 1
     overlays: int = 4
     seed: int = 0
@@ -149,6 +153,10 @@ class SfTSettings:
         check_choice(self.rgb_kind, "rgb_kind", ("l1", "l2"))
         check_choice(self.sil_kind, "sil_kind", ("l2", "l1", "iou"))
         check_choice(self.dtype, "dtype", ("float32", "float64"))
+        known = {"d_alpha", "d_uv", "d_x", "rot", "trans"}
+        self.freeze = tuple(self.freeze)
+        for name in self.freeze:
+            check_choice(name, "freeze", sorted(known))
 
     @property
     def torch_dtype(self) -> torch.dtype:
@@ -386,11 +394,19 @@ def run_sft(
 
 def _optimize_window(model: DeformationModel, terms: ImageTerms, inext: Inextensibility,
                      st: SfTSettings, pending: dict, idx: list[int], targets: torch.Tensor,
-                     masks: torch.Tensor | None) -> tuple[int, list[float], float]:
-    """Optimise the frames ``idx`` in place in ``pending``; return (iterations, curve, loss)."""
+                     masks: torch.Tensor | None, callback=None) -> tuple[int, list[float], float]:
+    """Optimise the frames ``idx`` in place in ``pending``; return (iterations, curve, loss).
+
+    ``callback(iteration, params)`` is called after every step when given.
+    """
     names = list(model.init_params())
-    params = {n: torch.stack([pending[j][n] for j in idx]).requires_grad_(True) for n in names}
-    groups = [{"params": [params[n]], "lr": getattr(st, model.groups[n])} for n in names]
+    params = {n: torch.stack([pending[j][n] for j in idx]) for n in names}
+    free = [n for n in names if n not in st.freeze]
+    if not free:
+        raise ValueError(f"freeze: every parameter of the model is frozen ({names})")
+    for n in free:
+        params[n].requires_grad_(True)
+    groups = [{"params": [params[n]], "lr": getattr(st, model.groups[n])} for n in free]
     opt = torch.optim.Adam(groups)
     best, since, curve = float("inf"), 0, []
     auto = st.method == "polysft" and st.order == ORDER_AUTO
@@ -410,6 +426,8 @@ def _optimize_window(model: DeformationModel, terms: ImageTerms, inext: Inextens
         opt.step()
         val = float(loss.detach())
         curve.append(val)
+        if callback is not None:
+            callback(it, params)
         if val < best * (1.0 - st.min_improvement):
             best, since = val, 0
         else:
@@ -426,6 +444,57 @@ def _optimize_window(model: DeformationModel, terms: ImageTerms, inext: Inextens
     for k, j in enumerate(idx):
         pending[j] = {n: params[n][k].detach().clone() for n in names}
     return it, curve, curve[-1] if curve else float("nan")
+
+
+def reconstruct_window(
+    sequence: Sequence | str | os.PathLike,
+    frames: list[int],
+    settings: SfTSettings | None = None,
+    *,
+    callback=None,
+) -> tuple[np.ndarray, int]:
+    """Optimise one window of frames, all starting from the template (no sliding).
+
+    Parameters
+    ----------
+    sequence : Sequence or path
+    frames : list of int
+        Frame indices of the window, in order.
+    settings : SfTSettings, optional
+        ``window`` is ignored; ``patience`` and ``frame_period`` apply.
+    callback : callable, optional
+        ``callback(iteration, vertices)`` after every step, with ``(F, V, 3)`` float64
+        vertices (computed only when given).
+
+    Returns
+    -------
+    vertices : np.ndarray
+        ``(F, V, 3)`` float64 reconstruction (scene units).
+    iterations : int
+    """
+    st = settings or SfTSettings()
+    seq = sequence if isinstance(sequence, Sequence) else load_sequence(sequence)
+    t = seq.template
+    model = build_model(st.method, t.verts, t.faces, order=st.order, max_order=st.max_order,
+                        patches=st.patches, k_b=st.k_b, k_bn=st.k_bn, seed=st.seed,
+                        dtype=st.torch_dtype)
+    terms = ImageTerms(seq, RasterSettings(sigma=st.sigma, gamma=st.gamma), k_rgb=st.k_rgb,
+                       k_sil=st.k_sil, rgb_kind=st.rgb_kind, sil_kind=st.sil_kind,
+                       dtype=st.torch_dtype)
+    inext = Inextensibility(t.verts, t.faces, model.scale, st.k_mi)
+    targets, masks = _Window(seq, terms).targets(list(frames))
+    pending = {j: model.init_params() for j in frames}
+    cb = None
+    if callback is not None:
+        def cb(it, params):
+            with torch.no_grad():
+                callback(it, model.vertices(params).to(torch.float64).numpy())
+    iters, _, _ = _optimize_window(model, terms, inext, st, pending, list(frames), targets,
+                                   masks, cb)
+    with torch.no_grad():
+        p = {n: torch.stack([pending[j][n] for j in frames]) for n in pending[frames[0]]}
+        X = model.vertices(p).to(torch.float64).numpy()
+    return X, iters
 
 
 def _overlay(path: Path, terms: ImageTerms, X: torch.Tensor, target: torch.Tensor,

@@ -1,0 +1,168 @@
+"""sft.model: jet-patch template, PolySfT deformation and the per-vertex baseline."""
+
+import numpy as np
+import pytest
+import torch
+
+from polygeo.frames import axis_angle_to_matrix
+from sft.model import JetModel, JetTemplate, VertexModel, build_model
+
+
+def sheet(nx=9, ny=7, bend=0.0):
+    """A 24 x 18 cm sheet 40 cm in front of the camera, optionally bent (cylinder)."""
+    a, b = np.meshgrid(np.linspace(-0.12, 0.12, nx), np.linspace(-0.09, 0.09, ny))
+    a, b = a.ravel(), b.ravel()
+    if bend:
+        r = 1.0 / bend
+        x, z = r * np.sin(a / r), r * (1 - np.cos(a / r))
+    else:
+        x, z = a, np.zeros_like(a)
+    verts = np.stack([x, b, 0.4 + z], 1)
+    faces = []
+    for j in range(ny - 1):
+        for i in range(nx - 1):
+            v = j * nx + i
+            faces += [[v, v + 1, v + nx], [v + 1, v + nx + 1, v + nx]]
+    return verts, np.array(faces)
+
+
+def stack(params, n):
+    return {k: v[None].repeat(n, *[1] * v.ndim) for k, v in params.items()}
+
+
+@pytest.mark.parametrize("order, patches", [(2, 1), (4, 1), (3, 4)])
+def test_zero_parameters_reproduce_template(order, patches):
+    v, f = sheet(bend=5.0)
+    m = build_model("polysft", v, f, order=order, patches=patches, dtype=torch.float64)
+    X = m.vertices(stack(m.init_params(), 2))
+    np.testing.assert_allclose(X[1].numpy(), v, atol=1e-12)
+    # positions coincide exactly; the jets of two patches have slightly different normals
+    assert float(m.regularizer(stack(m.init_params(), 1))) < 1e-6
+
+
+def test_jet_fit_exact_on_polynomial_sheet():
+    # the template is a quadratic height field: an order-2 jet represents it exactly
+    a, b = np.meshgrid(np.linspace(-1, 1, 11), np.linspace(-1, 1, 9))
+    z = 0.1 * a**2 - 0.05 * a * b + 0.02
+    v = np.stack([a.ravel(), b.ravel(), z.ravel()], 1)
+    _, f = sheet(11, 9)
+    t = JetTemplate.fit(v, f, order=2)
+    assert t.fit_rms < 1e-12
+    assert t.n_patches == 1 and t.n_samples == len(v)
+    assert float(t.uv.norm(dim=1).max()) == pytest.approx(1.0)  # normalised to the unit disc
+
+
+def test_rigid_parameters_move_rigidly():
+    v, f = sheet(bend=4.0)
+    for m in (build_model("polysft", v, f, dtype=torch.float64),
+              build_model("vertex", v, f, dtype=torch.float64)):
+        p = stack(m.init_params(), 1)
+        p["rot"] = torch.tensor([[0.05, -0.1, 0.02]], dtype=torch.float64)
+        p["trans"] = torch.tensor([[0.01, 0.02, -0.03]], dtype=torch.float64)
+        X = m.vertices(p)[0].numpy()
+        # pairwise distances are preserved and the motion is the documented one
+        d0 = np.linalg.norm(v[:, None] - v[None], axis=-1)
+        d1 = np.linalg.norm(X[:, None] - X[None], axis=-1)
+        np.testing.assert_allclose(d1, d0, atol=1e-12)
+        fr = m._frame
+        Rc = axis_angle_to_matrix(p["rot"][0]).numpy()
+        s, R, T = float(fr.s[0]), fr.R[0].numpy(), fr.T[0].numpy()
+        expect = s * ((((v - T) @ R / s) @ Rc.T + p["trans"][0].numpy()) @ R.T) + T
+        np.testing.assert_allclose(X, expect, atol=1e-12)
+
+
+def test_alpha_offsets_change_heights_along_the_normal():
+    v, f = sheet()
+    m = build_model("polysft", v, f, order=2, dtype=torch.float64)
+    p = stack(m.init_params(), 1)
+    p["d_alpha"][0, 0, 0] = 0.1  # constant term: a shift along the patch normal
+    X = m.vertices(p)[0].numpy()
+    n = m.template.orientation.R[0, :, 2].numpy()
+    shift = X - v
+    np.testing.assert_allclose(shift, np.outer(np.full(len(v), 0.1 * m.scale), n), atol=1e-12)
+
+
+def test_auto_order_masks_high_degree_offsets():
+    v, f = sheet()
+    m = build_model("polysft", v, f, order="auto", max_order=4, dtype=torch.float64)
+    assert m.order == 2 and m.max_order == 4
+    p = stack(m.init_params(), 1)
+    p["d_alpha"][0, 0, -1] = 1.0  # a v^4 coefficient: inactive at order 2
+    np.testing.assert_allclose(m.vertices(p)[0].numpy(), v, atol=1e-12)
+    m.set_order(4)
+    assert np.abs(m.vertices(p)[0].numpy() - v).max() > 1e-3
+    m.load_state({"order": 3})
+    assert m.state() == {"order": 3}
+
+
+def test_batched_equals_per_frame():
+    v, f = sheet(bend=3.0)
+    g = torch.Generator().manual_seed(0)
+    for m in (build_model("polysft", v, f, order=3, patches=3, dtype=torch.float64),
+              build_model("vertex", v, f, dtype=torch.float64)):
+        p = {k: 0.01 * torch.randn((3, *t.shape), generator=g, dtype=torch.float64)
+             for k, t in m.init_params().items()}
+        X = m.vertices(p)
+        for i in range(3):
+            Xi = m.vertices({k: t[i : i + 1] for k, t in p.items()})[0]
+            torch.testing.assert_close(X[i], Xi, rtol=0, atol=1e-14)
+
+
+def test_gradcheck_vertices_and_boundary_term():
+    v, f = sheet(5, 4, bend=3.0)
+    m = build_model("polysft", v, f, order=2, patches=2, dtype=torch.float64)
+    g = torch.Generator().manual_seed(1)
+    base = {k: 0.02 * torch.randn((1, *t.shape), generator=g, dtype=torch.float64)
+            for k, t in m.init_params().items()}
+    names = list(base)
+
+    def fn(*xs):
+        p = dict(zip(names, xs))
+        return m.vertices(p), m.regularizer(p)
+
+    inputs = tuple(base[n].requires_grad_(True) for n in names)
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6)
+    mv = build_model("vertex", v, f, dtype=torch.float64)
+    pv = {k: 0.02 * torch.randn((1, *t.shape), generator=g, dtype=torch.float64)
+          .requires_grad_(True) for k, t in mv.init_params().items()}
+    nv = list(pv)
+    assert torch.autograd.gradcheck(lambda *xs: mv.vertices(dict(zip(nv, xs))),
+                                    tuple(pv[n] for n in nv), eps=1e-6, atol=1e-6)
+
+
+def test_boundary_term_penalises_torn_patches():
+    v, f = sheet(bend=3.0)
+    m = build_model("polysft", v, f, order=2, patches=3, dtype=torch.float64)
+    assert len(m.template.pairs) > 0
+    p = stack(m.init_params(), 1)
+    p["d_alpha"][0, 0, 0] = 0.05  # lift patch 0 only: tears it from its neighbours
+    assert float(m.regularizer(p)) > 1e-4
+    # a rigid motion keeps them together: the term keeps its (tiny) template value
+    p = stack(m.init_params(), 1)
+    base = float(m.regularizer(p))
+    p["rot"][0] = torch.tensor([0.1, 0.0, 0.0])
+    p["trans"][0] = torch.tensor([0.0, 0.2, 0.0])
+    assert float(m.regularizer(p)) == pytest.approx(base, rel=1e-6, abs=1e-18)
+
+
+def test_model_validation():
+    v, f = sheet()
+    with pytest.raises(ValueError, match="method: expected 'polysft' or 'vertex'"):
+        build_model("mesh", v, f)
+    with pytest.raises(ValueError, match="order: expected an integer in"):
+        build_model("polysft", v, f, order="high")
+    with pytest.raises(ValueError, match="order: expected an integer in"):
+        build_model("polysft", v, f, order=7)
+    with pytest.raises(ValueError, match="verts: expected shape"):
+        build_model("polysft", v[:, :2], f)
+    bad = v.copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(ValueError, match="verts: expected finite values"):
+        build_model("vertex", bad, f)
+    vs, fs = sheet(4, 3)
+    with pytest.raises(ValueError, match="patches: patch 0 has 12 vertices, fewer than the 28"):
+        JetTemplate.fit(vs, fs, order=6)
+    m = JetModel(JetTemplate.fit(v, f, order=3))
+    with pytest.raises(ValueError, match="order: expected an integer in \\[1, 3\\]"):
+        m.set_order(4)
+    assert isinstance(build_model("vertex", v, f), VertexModel)
