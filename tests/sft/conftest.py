@@ -5,6 +5,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 _GEN = Path(__file__).resolve().parents[2] / "datasets" / "generate_sft.py"
 
@@ -42,3 +43,17 @@ def make_sequence(tmp_path_factory):
 @pytest.fixture(scope="session")
 def generator_module():
     return _generator()
+
+
+@pytest.fixture(autouse=True)
+def _single_thread():
+    """One thread for torch and numba: on a shared 2-core machine the small tensors of these
+    tests run several times faster without intra-op parallelism (no waiting at barriers)."""
+    import numba
+
+    old_t, old_n = torch.get_num_threads(), numba.get_num_threads()
+    torch.set_num_threads(1)
+    numba.set_num_threads(1)
+    yield
+    torch.set_num_threads(old_t)
+    numba.set_num_threads(old_n)
