@@ -257,12 +257,32 @@ def _tex_sample_grad(tex, u, v, out, gcol, gtex, need_tex):
     return gu * Wt, gv * Ht
 
 
+@njit(cache=True, inline="always")
+def _tile_range(lo, hi, margin, t0, t1):
+    """Pixels ``k`` in ``[t0, t1)`` with centres ``k + 0.5`` in ``[lo - margin, hi + margin]``."""
+    a = lo - margin - 0.5
+    c = hi + margin - 0.5
+    if a < t0:
+        a = float(t0)
+    if c > t1 - 1.0:
+        c = t1 - 1.0
+    if c < a:
+        return 1, 0
+    return int(math.ceil(a)), int(math.floor(c))
+
+
 @njit(cache=True, parallel=True)
 def soft_forward(
     fd, bin_off, bin_f, H, W, ts, margin, cutoff, sigma, inv_gamma, znear, zfar, bg_depth, bg,
     mode, attr, uvs, tex, out_P, out_m, out_Z, out_rgb,
 ):  # fmt: skip
-    """Soft silhouette (and colour when ``mode`` > 0) of every pixel; fills the ``out_*`` arrays."""
+    """Soft silhouette (and colour when ``mode`` > 0) of every pixel; fills the ``out_*`` arrays.
+
+    Tiles run in parallel; inside a tile the loop is face-major (each binned face visits
+    the tile pixels within its grown bounding box) and the per-pixel aggregates live in
+    tile-local arrays. Every pixel still sees its faces in bin order, so the result does
+    not depend on the tiling.
+    """
     B = fd.shape[0]
     TH = (H + ts - 1) // ts
     TW = (W + ts - 1) // ts
@@ -270,6 +290,7 @@ def soft_forward(
     C = out_rgb.shape[3]
     Ba = attr.shape[0]
     Bu = uvs.shape[0]
+    rgb_mode = mode != MODE_SILHOUETTE
     inv_sigma = 1.0 / sigma
     inv_range = 1.0 / (zfar - znear)
     for bt in prange(B * T):
@@ -277,38 +298,41 @@ def soft_forward(
         tile = bt - b * T
         ty = tile // TW
         tx = tile - ty * TW
+        i0 = ty * ts
+        i1 = min(H, i0 + ts)
+        j0 = tx * ts
+        j1 = min(W, j0 + ts)
         s0 = bin_off[bt]
         s1 = bin_off[bt + 1]
         ba = b if Ba > 1 else 0
         bu = b if Bu > 1 else 0
-        col = np.empty(C)
-        acc = np.empty(C)
-        for i in range(ty * ts, min(H, ty * ts + ts)):
-            qy = i + 0.5
-            for j in range(tx * ts, min(W, tx * ts + ts)):
-                qx = j + 0.5
-                P = 1.0
-                m = bg_depth
-                Z = 1.0
+        tP = np.ones((i1 - i0, j1 - j0))
+        tm = np.full((i1 - i0, j1 - j0), bg_depth)
+        tZ = np.ones((i1 - i0, j1 - j0))
+        tacc = np.empty((i1 - i0, j1 - j0, C))
+        for li in range(i1 - i0):
+            for lj in range(j1 - j0):
                 for c in range(C):
-                    acc[c] = bg[c]
-                for k in range(s0, s1):
-                    d = fd[b, bin_f[k]]
-                    if (
-                        qx < d[_XMIN] - margin
-                        or qx > d[_XMAX] + margin
-                        or qy < d[_YMIN] - margin
-                        or qy > d[_YMAX] + margin
-                    ):
-                        continue
+                    tacc[li, lj, c] = bg[c]
+        col = np.empty(C)
+        for k in range(s0, s1):
+            f = bin_f[k]
+            d = fd[b, f]
+            ja, jb = _tile_range(d[_XMIN], d[_XMAX], margin, j0, j1)
+            ia, ib = _tile_range(d[_YMIN], d[_YMAX], margin, i0, i1)
+            for i in range(ia, ib + 1):
+                qy = i + 0.5
+                li = i - i0
+                for j in range(ja, jb + 1):
+                    qx = j + 0.5
+                    lj = j - j0
                     w0, w1, w2, inside, d2, _k, _t, _rx, _ry = _geometry(d, qx, qy)
                     if not inside and d2 > cutoff:
                         continue
                     D, omD = _coverage(inside, d2, inv_sigma)
-                    P *= omD
-                    if mode == MODE_SILHOUETTE:
+                    tP[li, lj] *= omD
+                    if not rgb_mode:
                         continue
-                    f = bin_f[k]
                     c0, c1, c2, _s = _clip_bary(w0, w1, w2)
                     u0 = c0 * d[_IZ0]
                     u1 = c1 * d[_IZ0 + 1]
@@ -329,22 +353,27 @@ def soft_forward(
                         uu = p0 * uvs[bu, f, 0, 0] + p1 * uvs[bu, f, 1, 0] + p2 * uvs[bu, f, 2, 0]
                         vv = p0 * uvs[bu, f, 0, 1] + p1 * uvs[bu, f, 1, 1] + p2 * uvs[bu, f, 2, 1]
                         _tex_sample(tex, uu, vv, col)
+                    m = tm[li, lj]
                     if zn > m:
                         sc = math.exp((m - zn) * inv_gamma)
-                        Z *= sc
+                        tZ[li, lj] *= sc
                         for c in range(C):
-                            acc[c] *= sc
+                            tacc[li, lj, c] *= sc
                         m = zn
+                        tm[li, lj] = zn
                     a = D * math.exp((zn - m) * inv_gamma)
-                    Z += a
+                    tZ[li, lj] += a
                     for c in range(C):
-                        acc[c] += a * col[c]
-                out_P[b, i, j] = P
-                if mode != MODE_SILHOUETTE:
-                    out_m[b, i, j] = m
-                    out_Z[b, i, j] = Z
+                        tacc[li, lj, c] += a * col[c]
+        for i in range(i0, i1):
+            for j in range(j0, j1):
+                out_P[b, i, j] = tP[i - i0, j - j0]
+                if rgb_mode:
+                    Zt = tZ[i - i0, j - j0]
+                    out_m[b, i, j] = tm[i - i0, j - j0]
+                    out_Z[b, i, j] = Zt
                     for c in range(C):
-                        out_rgb[b, i, j, c] = acc[c] / Z
+                        out_rgb[b, i, j, c] = tacc[i - i0, j - j0, c] / Zt
 
 
 @njit(cache=True, inline="always")
@@ -364,7 +393,10 @@ def soft_backward(
 ):  # fmt: skip
     """Gradients of the soft render; accumulates into per-chunk buffers ``g_*[chunk]``.
 
-    ``g_fv`` (n_chunks, B, F, 3, 3) receives d/d(x, y, z) of every face vertex.
+    ``g_fv`` (n_chunks, B, F, 3, 3) receives d/d(x, y, z) of every face vertex. Chunk ``c``
+    handles tiles ``c, c + n_chunks, ...`` (no two threads write the same buffer); inside a
+    tile the loop is face-major and a face's gradient is summed over the tile's pixels
+    before it is written.
     """
     B = fd.shape[0]
     TH = (H + ts - 1) // ts
@@ -374,12 +406,18 @@ def soft_backward(
     Ba = attr.shape[0]
     Bu = uvs.shape[0]
     nch = g_fv.shape[0]
+    rgb_mode = mode != MODE_SILHOUETTE
     inv_sigma = 1.0 / sigma
     inv_range = 1.0 / (zfar - znear)
     for ch in prange(nch):
         col = np.empty(C)
         gcol = np.empty(C)
         gv = np.zeros((3, 3))
+        tgaP = np.empty((ts, ts))
+        tgdot = np.empty((ts, ts))
+        tinvZ = np.empty((ts, ts))
+        tm = np.empty((ts, ts))
+        tany = np.zeros((ts, ts), dtype=np.bool_)
         gfv = g_fv[ch]
         gat = g_attr[ch]
         guv = g_uv[ch]
@@ -393,51 +431,69 @@ def soft_backward(
             s1 = bin_off[bt + 1]
             if s0 == s1:
                 continue
+            i0 = ty * ts
+            i1 = min(H, i0 + ts)
+            j0 = tx * ts
+            j1 = min(W, j0 + ts)
             ba = b if Ba > 1 else 0
             bu = b if Bu > 1 else 0
-            for i in range(ty * ts, min(H, ty * ts + ts)):
-                qy = i + 0.5
-                for j in range(tx * ts, min(W, tx * ts + ts)):
-                    qx = j + 0.5
+            live = False
+            for i in range(i0, i1):
+                for j in range(j0, j1):
+                    li = i - i0
+                    lj = j - j0
                     gaP = g_alpha[b, i, j] * P_img[b, i, j]
+                    tgaP[li, lj] = gaP
                     any_rgb = False
                     gdotI = 0.0
-                    invZ = 0.0
-                    m = 0.0
-                    if mode != MODE_SILHOUETTE:
-                        invZ = 1.0 / Z_img[b, i, j]
-                        m = m_img[b, i, j]
+                    if rgb_mode:
+                        tinvZ[li, lj] = 1.0 / Z_img[b, i, j]
+                        tm[li, lj] = m_img[b, i, j]
                         for c in range(C):
                             gc = g_rgb[b, i, j, c]
                             if gc != 0.0:
                                 any_rgb = True
                             gdotI += gc * rgb_img[b, i, j, c]
-                    if gaP == 0.0 and not any_rgb:
-                        continue
-                    for k in range(s0, s1):
-                        f = bin_f[k]
-                        d = fd[b, f]
-                        if (
-                            qx < d[_XMIN] - margin
-                            or qx > d[_XMAX] + margin
-                            or qy < d[_YMIN] - margin
-                            or qy > d[_YMAX] + margin
-                        ):
+                    tgdot[li, lj] = gdotI
+                    tany[li, lj] = any_rgb
+                    if gaP != 0.0 or any_rgb:
+                        live = True
+            if not live:
+                continue
+            for k in range(s0, s1):
+                f = bin_f[k]
+                d = fd[b, f]
+                ja, jb = _tile_range(d[_XMIN], d[_XMAX], margin, j0, j1)
+                ia, ib = _tile_range(d[_YMIN], d[_YMAX], margin, i0, i1)
+                if ja > jb or ia > ib:
+                    continue
+                for r in range(3):
+                    gv[r, 0] = 0.0
+                    gv[r, 1] = 0.0
+                    gv[r, 2] = 0.0
+                x0, y0, x1, y1, x2, y2 = d[0], d[1], d[2], d[3], d[4], d[5]
+                inva = d[_INVA]
+                iz0 = d[_IZ0]
+                iz1 = d[_IZ0 + 1]
+                iz2 = d[_IZ0 + 2]
+                for i in range(ia, ib + 1):
+                    qy = i + 0.5
+                    li = i - i0
+                    for j in range(ja, jb + 1):
+                        lj = j - j0
+                        gaP = tgaP[li, lj]
+                        any_rgb = tany[li, lj]
+                        if gaP == 0.0 and not any_rgb:
                             continue
+                        qx = j + 0.5
                         w0, w1, w2, inside, d2, kmin, tmin, rx, ry = _geometry(d, qx, qy)
                         if not inside and d2 > cutoff:
                             continue
                         D, omD = _coverage(inside, d2, inv_sigma)
                         gx = gaP * D
-                        for r in range(3):
-                            gv[r, 0] = 0.0
-                            gv[r, 1] = 0.0
-                            gv[r, 2] = 0.0
                         if any_rgb:
+                            invZ = tinvZ[li, lj]
                             c0, c1, c2, s = _clip_bary(w0, w1, w2)
-                            iz0 = d[_IZ0]
-                            iz1 = d[_IZ0 + 1]
-                            iz2 = d[_IZ0 + 2]
                             u0 = c0 * iz0
                             u1 = c1 * iz1
                             u2 = c2 * iz2
@@ -447,7 +503,7 @@ def soft_backward(
                             p1 = u1 * zp
                             p2 = u2 * zp
                             zn = (zfar - zp) * inv_range
-                            ez = math.exp((zn - m) * inv_gamma)
+                            ez = math.exp((zn - tm[li, lj]) * inv_gamma)
                             a = D * ez
                             for c in range(C):
                                 gcol[c] = g_rgb[b, i, j, c] * a * invZ
@@ -487,7 +543,7 @@ def soft_backward(
                             gdc = 0.0
                             for c in range(C):
                                 gdc += g_rgb[b, i, j, c] * col[c]
-                            ga = (gdc - gdotI) * invZ
+                            ga = (gdc - tgdot[li, lj]) * invZ
                             gx += ga * ez * D * omD
                             gzp = -ga * a * inv_gamma * inv_range
                             # p_i = u_i / U, zp = 1 / U
@@ -508,12 +564,10 @@ def soft_backward(
                             gw1 = (gc1 - sc) / s if 0.0 <= w1 <= 1.0 else 0.0
                             gw2 = (gc2 - sc) / s if 0.0 <= w2 <= 1.0 else 0.0
                             # w_i = E_i / A, A = E0 + E1 + E2
-                            inva = d[_INVA]
                             gA = -(gw0 * w0 + gw1 * w1 + gw2 * w2) * inva
                             ge0 = gw0 * inva + gA
                             ge1 = gw1 * inva + gA
                             ge2 = gw2 * inva + gA
-                            x0, y0, x1, y1, x2, y2 = d[0], d[1], d[2], d[3], d[4], d[5]
                             _edge_fn_grad(ge0, x1, y1, x2, y2, qx, qy, gv, 1, 2)
                             _edge_fn_grad(ge1, x2, y2, x0, y0, qx, qy, gv, 2, 0)
                             _edge_fn_grad(ge2, x0, y0, x1, y1, qx, qy, gv, 0, 1)
@@ -526,10 +580,10 @@ def soft_backward(
                             gv[ka, 1] -= gd2 * 2.0 * (1.0 - tmin) * ry
                             gv[kb, 0] -= gd2 * 2.0 * tmin * rx
                             gv[kb, 1] -= gd2 * 2.0 * tmin * ry
-                        for r in range(3):
-                            gfv[b, f, r, 0] += gv[r, 0]
-                            gfv[b, f, r, 1] += gv[r, 1]
-                            gfv[b, f, r, 2] += gv[r, 2]
+                for r in range(3):
+                    gfv[b, f, r, 0] += gv[r, 0]
+                    gfv[b, f, r, 1] += gv[r, 1]
+                    gfv[b, f, r, 2] += gv[r, 2]
 
 
 @njit(cache=True, parallel=True)

@@ -103,7 +103,7 @@ class RasterSettings:
     sigma: float = 0.1
     gamma: float = 1e-4
     blur_threshold: float = 1e-4
-    tile_size: int = 4
+    tile_size: int = 8
     background: Sequence[float] = field(default=(0.0, 0.0, 0.0))
     background_depth: float = 1e-3
     znear: float = 1e-2

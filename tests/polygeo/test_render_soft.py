@@ -394,7 +394,7 @@ def test_zero_area_triangles_are_skipped():
     out = render(
         verts, faces, cam, RasterSettings(sigma=0.5), colors=torch.ones(4, 3, dtype=torch.float64)
     )
-    assert float(out.alpha.max()) == 0.0
+    assert float(out.alpha.detach().max()) == 0.0
     (out.alpha.sum() + out.rgb.sum()).backward()
     assert torch.isfinite(verts.grad).all()
 
@@ -521,3 +521,38 @@ def test_settings_margin_and_softras_conversion():
     assert sigma_from_softras(1e-4, 256) == pytest.approx(1.6384)
     with pytest.raises(ValueError):
         sigma_from_softras(0.0, 64)
+
+
+def test_texture_helpers_and_their_validation():
+    from polygeo.render import flip_v
+
+    uv = np.array([[0.25, 0.1], [0.5, 0.75]])
+    np.testing.assert_allclose(flip_v(uv), [[0.25, 0.9], [0.5, 0.25]])
+    np.testing.assert_allclose(flip_v(flip_v(uv)), uv)
+    tex = checkerboard(8, 2, colors=((1.0, 0.0), (0.0, 1.0)))
+    assert tex.shape == (8, 8, 2)
+    np.testing.assert_allclose(tex[0, 0], [1.0, 0.0])
+    np.testing.assert_allclose(tex[0, 4], [0.0, 1.0])
+    np.testing.assert_allclose(tex[4, 4], [1.0, 0.0])
+    with pytest.raises(ValueError, match="colors"):
+        checkerboard(8, 2, colors=(1.0, 0.0))
+    with pytest.raises(ValueError, match="size"):
+        checkerboard(0)
+    with pytest.raises(ValueError, match="texture"):
+        sample_texture(np.ones((4, 4)), uv)
+    with pytest.raises(ValueError, match="texture"):
+        sample_texture(np.ones((0, 4, 3)), uv)
+    with pytest.raises(ValueError, match="uv"):
+        sample_texture(np.ones((4, 4, 3)), np.ones((3, 3)))
+    with pytest.raises(ValueError, match="uv"):
+        flip_v(np.ones(3))
+
+
+def test_rasterize_faces_validation(rng):
+    fv = random_face_verts(rng, 1, 3, 8, 8)
+    with pytest.raises(ValueError, match="face_verts"):
+        rasterize_faces(fv[..., :2], 8, 8)
+    with pytest.raises(ValueError, match="face_uvs"):
+        rasterize_faces(fv, 8, 8, texture=torch.ones(4, 4, 3, dtype=torch.float64))
+    with pytest.raises(ValueError, match="face_colors"):
+        rasterize_faces(fv, 8, 8, face_colors=torch.ones(1, 5, 3, 3, dtype=torch.float64))
