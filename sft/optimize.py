@@ -99,6 +99,9 @@ class SfTSettings:
         Soft rasterizer depth temperature.
     dtype : {"float32", "float64"}
         Optimisation dtype.
+    init : {"previous", "extrapolate"}
+        How a frame entering the window starts: from the previous frame's parameters
+        (thesis), or extrapolated at constant velocity from the two previous frames.
     freeze : tuple of str
         Parameters kept at their initial value (e.g. ``("d_alpha", "d_uv")`` optimises the
         rigid motion alone).
@@ -134,6 +137,7 @@ class SfTSettings:
     sigma: float = 0.1
     gamma: float = 1e-4
     dtype: str = "float32"
+    init: str = "previous"
     freeze: tuple[str, ...] = ()
     checkpoint_every: int = 1
     overlays: int = 4
@@ -159,6 +163,7 @@ class SfTSettings:
         check_choice(self.rgb_kind, "rgb_kind", ("l1", "l2"))
         check_choice(self.sil_kind, "sil_kind", ("l2", "l1", "iou"))
         check_choice(self.dtype, "dtype", ("float32", "float64"))
+        check_choice(self.init, "init", ("previous", "extrapolate"))
         known = {"d_alpha", "d_uv", "d_x", "rot", "trans"}
         self.freeze = tuple(self.freeze)
         for name in self.freeze:
@@ -314,7 +319,7 @@ def run_sft(
     ckpt_path = out / CHECKPOINT_NAME
     sdict = asdict(settings)
 
-    start, rows, pending, last = 0, [], {}, None
+    start, rows, pending, last, last2 = 0, [], {}, None, None
     if resume and ckpt_path.is_file():
         ck = torch.load(ckpt_path, weights_only=False)
         if ck.get("fingerprint") != fp or ck.get("settings") != sdict or ck.get("T") != T:
@@ -322,7 +327,8 @@ def run_sft(
                 f"{ckpt_path}: the checkpoint belongs to another sequence or other settings; "
                 "remove it or choose another output folder"
             )
-        start, rows, pending, last = ck["next"], ck["rows"], ck["pending"], ck["last"]
+        start, rows, pending = ck["next"], ck["rows"], ck["pending"]
+        last, last2 = ck["last"], ck["last2"]
         model.load_state(ck["model_state"])
     losses_path = out / "losses.jsonl"
     if start == 0 and losses_path.exists():
@@ -346,11 +352,14 @@ def run_sft(
             break
         t0, c0 = time.perf_counter(), time.process_time()
         idx = list(range(s, min(s + W, T)))
+        done = {s - 1: last, s - 2: last2}  # the two frames finalised last
+
+        def params_of(k: int, done=done):
+            return pending[k] if k in pending else done.get(k)
+
         for j in idx:
             if j not in pending:
-                src = pending.get(j - 1, last)
-                pending[j] = ({k: v.clone() for k, v in src.items()} if src is not None
-                              else model.init_params())
+                pending[j] = _initial(model, settings, params_of(j - 1), params_of(j - 2))
         targets, masks = window.targets(idx)
         iters, curve, loss_val = _optimize_window(model, terms, inext, settings, pending, idx,
                                                   targets, masks)
@@ -365,7 +374,7 @@ def run_sft(
             row.update(frame_errors(X, gt, template_v, t.faces).as_dict())
         if s in overlay_set:
             _overlay(out / f"overlay_{s:06d}.png", terms, X, targets[0], gt, t.faces)
-        last = pending.pop(s)
+        last2, last = last, pending.pop(s)
         row["seconds"] = time.perf_counter() - t0
         row["cpu_seconds"] = time.process_time() - c0
         row["rss_mb"] = _rss_mb()
@@ -377,6 +386,7 @@ def run_sft(
                                           or s == T - 1):
             _atomic_save({"version": _CKPT_VERSION, "fingerprint": fp, "settings": sdict, "T": T,
                           "next": s + 1, "rows": rows, "pending": pending, "last": last,
+                          "last2": last2,
                           "model_state": model.state()}, ckpt_path)
         if bar is not None:
             bar.update(1)
@@ -396,6 +406,16 @@ def run_sft(
 
         write_charts(out, rows, losses_path)
     return SfTResult(out_dir=out, rows=rows, summary=summary, complete=complete)
+
+
+def _initial(model: DeformationModel, st: SfTSettings, prev: dict | None,
+             prev2: dict | None) -> dict[str, torch.Tensor]:
+    """Parameters of a frame entering the window (see ``SfTSettings.init``)."""
+    if prev is None:
+        return model.init_params()
+    if st.init == "extrapolate" and prev2 is not None:
+        return {k: 2 * prev[k] - prev2[k] for k in prev}
+    return {k: v.clone() for k, v in prev.items()}
 
 
 def _optimize_window(model: DeformationModel, terms: ImageTerms, inext: Inextensibility,
