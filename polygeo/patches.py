@@ -670,6 +670,7 @@ class PatchSet:
         max_order: int = 6,
         stn_model: Any = None,
         optimize_steps: int = 40,
+        min_points_per_coeff: float = 2.0,
         seed: int = 0,
     ) -> PatchSet:
         """Partition a surface and fit one oriented n-jet per patch, in one batched call.
@@ -711,6 +712,13 @@ class PatchSet:
             Network for ``orient="stn"`` (default: the shipped weights).
         optimize_steps : int
             Adam steps of ``orient="optimize"``.
+        min_points_per_coeff : float
+            A patch gets at most the highest order whose coefficient count times this
+            factor does not exceed its point count (status ``ORDER_REDUCED`` when this caps
+            the requested order): a jet with nearly as many coefficients as points
+            interpolates its samples but swings between and beyond them, which shows in
+            resampled surfaces and boundary gaps. 0 disables the cap (orders are then only
+            reduced for singular or ill-conditioned fits).
         seed : int
             Partition seed.
 
@@ -737,6 +745,7 @@ class PatchSet:
             order = check_int(order, "order", low=1, high=jets.MAX_ORDER)
         if tol is not None:
             tol = check_positive(tol, "tol")
+        ratio = check_positive(min_points_per_coeff, "min_points_per_coeff", strict=False)
         v = as_tensor(points, "points")
         check_shape(v, "points", ("V", 3))
         check_finite(v, "points")
@@ -760,6 +769,7 @@ class PatchSet:
             v=v,
             f=f,
             nrm=nrm,
+            ratio=ratio,
             order=order,
             orient=orient,
             tol=tol,
@@ -797,7 +807,7 @@ class PatchSet:
 
     @classmethod
     def _fit_partition(
-        cls, part, *, v, f, nrm, order, orient, tol, max_order, stn_model, optimize_steps
+        cls, part, *, v, f, nrm, ratio, order, orient, tol, max_order, stn_model, optimize_steps
     ) -> PatchSet:
         from . import stn
 
@@ -847,12 +857,12 @@ class PatchSet:
         uv = torch.where(mask[..., None], local[..., :2], torch.zeros_like(local[..., :2]))
         z = local[..., 2]
         s = ori.s
+        top = max_order if isinstance(order, str) else int(order)
+        cap = _order_cap(mask.sum(1), top, ratio)
         if isinstance(order, str):
-            coeffs, residual, status, orders = _fit_auto(uv, z, mask, s, tol, max_order)
+            coeffs, residual, status, orders = _fit_auto(uv, z, mask, s, tol, max_order, cap)
         else:
-            jf = jets.fit(uv, z, order, mask=mask)
-            coeffs, residual = jf.coeffs.to(torch.float64), jf.residual.to(torch.float64)
-            status, orders = jf.status, jf.fitted_order
+            coeffs, residual, status, orders = _fit_capped(uv, z, mask, order, cap)
         big = torch.finfo(torch.float64).max
         umin = torch.where(mask[..., None], uv, torch.full_like(uv, big)).amin(1)
         umax = torch.where(mask[..., None], uv, torch.full_like(uv, -big)).amax(1)
@@ -1273,7 +1283,38 @@ def _partition(v, f, n_patches, seed, min_vertices) -> Partition:
     return partition(vn, f.cpu().numpy(), n_patches, seed=seed, min_vertices=min_vertices)
 
 
-def _fit_auto(uv, z, mask, s, tol, max_order):
+def _order_cap(count: torch.Tensor, order: int, ratio: float) -> torch.Tensor:
+    """Highest order ``o <= order`` with ``ratio * n_coeffs(o) <= count`` (at least 1)."""
+    cap = torch.ones_like(count)
+    for o in range(2, order + 1):
+        cap = torch.where(ratio * jets.n_coeffs(o) <= count, torch.full_like(cap, o), cap)
+    return cap
+
+
+def _fit_capped(uv, z, mask, order, cap):
+    """Fit every patch at ``min(order, cap)`` (one batched call per distinct order)."""
+    K = uv.shape[0]
+    M = jets.n_coeffs(order)
+    coeffs = torch.zeros(K, M, dtype=torch.float64)
+    residual = torch.zeros(K, dtype=torch.float64)
+    status = torch.zeros(K, dtype=torch.int64)
+    orders = torch.zeros(K, dtype=torch.int64)
+    eff = cap.clamp(max=order)
+    for o in torch.unique(eff).tolist():
+        sel = (eff == o).nonzero().squeeze(1)
+        jf = jets.fit(uv[sel], z[sel], int(o), mask=mask[sel])
+        c = jf.coeffs.to(torch.float64)
+        coeffs[sel, : c.shape[1]] = c
+        residual[sel] = jf.residual.to(torch.float64)
+        st = jf.status.to(torch.int64)
+        if o < order:
+            st = torch.where(st == int(Status.OK), int(Status.ORDER_REDUCED), st)
+        status[sel] = st
+        orders[sel] = jf.fitted_order.to(torch.int64)
+    return coeffs, residual, status, orders
+
+
+def _fit_auto(uv, z, mask, s, tol, max_order, cap):
     """Per-patch lowest order within ``tol`` (input units) or by BIC; padded coefficients."""
     K = uv.shape[0]
     M = jets.n_coeffs(max_order)
@@ -1282,6 +1323,8 @@ def _fit_auto(uv, z, mask, s, tol, max_order):
     res = torch.stack([f.residual.to(torch.float64) for f in fits], 1)  # (K, O)
     fitted = torch.stack([f.fitted_order for f in fits], 1)
     ok = fitted == torch.arange(1, max_order + 1)[None, :]  # not reduced
+    ok = ok & (torch.arange(1, max_order + 1)[None, :] <= cap[:, None])  # enough points
+    ok[:, 0] = True  # order 1 (or its fallback) is always available
     if tol is not None:
         good = ((res * s[:, None]) <= tol) & ok
         first = torch.where(good.any(1), good.to(torch.int8).argmax(1), torch.full((K,), -1))

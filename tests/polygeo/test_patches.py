@@ -433,3 +433,27 @@ def test_stn_orientation_is_never_worse_than_pca():
         net.out.weight.normal_(0, 1.0)  # a network that rotates patches at random
     st = PatchSet.fit(v, f, partition=part, order=3, orient="stn", stn_model=net)
     assert (st.residual <= pca.residual + 1e-12).all()
+
+
+def test_order_cap_keeps_small_patches_from_swinging():
+    # ~25 points per patch: an order-4 jet (15 coefficients) nearly interpolates them and
+    # swings beyond its samples; the default cap (2 points per coefficient) lowers the order
+    v, f = syn.body_mesh(4)
+    part = partition_mesh(v, f, 100, min_vertices=15)
+    free = PatchSet.fit(v, f, partition=part, order=4, min_points_per_coeff=0)
+    capped = PatchSet.fit(v, f, partition=part, order=4)
+    n = capped.mask.sum(1)
+    o = capped.orders
+    need = (o + 1) * (o + 2)  # 2 * n_coeffs(o)
+    assert (need <= n).all()
+    assert (capped.status[o < 4] == Status.ORDER_REDUCED).all()
+    g_free = free.metrics().summary()["boundary_gap_max"]
+    g_cap = capped.metrics().summary()["boundary_gap_max"]
+    assert g_cap < 0.75 * g_free, (g_cap, g_free)
+    c = [
+        chamfer_distance(v, f, ps.resample(1)[0].numpy(), ps.resample(1)[1], mode="surface")
+        for ps in (free, capped)
+    ]
+    assert c[1] < c[0]
+    with pytest.raises(ValueError, match="min_points_per_coeff"):
+        PatchSet.fit(v, f, partition=part, min_points_per_coeff=-1)
