@@ -16,7 +16,13 @@ Faces are binned into screen tiles by their bounding boxes grown by the blur mar
 the work is proportional to the faces that reach each tile. The forward pass keeps only
 per-pixel aggregates; the backward pass recomputes the per-face terms (no per-pixel x
 per-face tensor is ever stored). Faces with any vertex closer than ``znear`` are culled
-(not clipped); faces with a projected area below ``min_area`` are skipped.
+(not clipped); faces with a projected area below ``min_area`` are skipped. Every face
+within the blur margin of a pixel is aggregated (exact SoftRas; there is no top-K cap).
+
+Threads: the kernels run in parallel over tiles on ``numba.get_num_threads()`` threads
+(small renders run on the calling thread). On an oversubscribed machine (more busy
+processes than cores) one thread is usually faster: ``numba.set_num_threads(1)``, or set
+``OMP_WAIT_POLICY=PASSIVE`` before starting Python when numba uses the OpenMP layer.
 """
 
 from __future__ import annotations

@@ -557,3 +557,20 @@ def test_rasterize_faces_validation(rng):
         rasterize_faces(fv, 8, 8, texture=torch.ones(4, 4, 3, dtype=torch.float64))
     with pytest.raises(ValueError, match="face_colors"):
         rasterize_faces(fv, 8, 8, face_colors=torch.ones(1, 5, 3, 3, dtype=torch.float64))
+
+
+def test_tile_size_does_not_change_the_result(rng):
+    verts, faces, uvs = sheet(9)
+    cam = Camera.look_at([0.2, -0.1, -3.0], [0, 0, 0], focal=25.0, width=37, height=29)
+    tex = checkerboard(32, 4, smooth=True)
+    outs, grads = [], []
+    for ts in (3, 8, 16):
+        v = torch.tensor(verts, requires_grad=True)
+        out = render(v, faces, cam, RasterSettings(sigma=0.4, gamma=0.01, tile_size=ts), uvs=uvs,
+                     texture=tex)  # fmt: skip
+        (out.alpha.sum() + (out.rgb * torch.arange(3.0, dtype=torch.float64)).sum()).backward()
+        outs.append(out)
+        grads.append(v.grad)
+    for out, g in zip(outs[1:], grads[1:]):
+        assert torch.equal(out.alpha, outs[0].alpha) and torch.equal(out.rgb, outs[0].rgb)
+        torch.testing.assert_close(g, grads[0], rtol=1e-12, atol=1e-12)
