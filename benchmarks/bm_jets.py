@@ -106,10 +106,12 @@ def metrics(s, normals=None, H=None, K=None, sel=None, h_sign=None) -> dict:
 
 
 def border_of(name: str, s):
+    """The rim vertices of the open cylinder (its mesh boundary)."""
     if name != "cylinder":
         return None
-    z = s.points[:, 2]
-    return np.flatnonzero(np.abs(z) > 0.9 * np.abs(z).max())
+    from polygeo.mesh import boundary_edges
+
+    return np.unique(boundary_edges(s.faces))
 
 
 # ------------------------------------------------------------------------------ methods
@@ -604,6 +606,10 @@ def main(argv=None) -> int:
             "the k-th neighbour",
             "libigl principal_curvature uses a 2-ring (about 19 vertices on these meshes) for "
             "k=20 comparisons",
+            "k follows CGAL's convention in polygeo and CGAL alike: k neighbours besides the "
+            "point itself (k + 1 points per fit); the NumPy baseline queries k points "
+            "including the point itself",
+            "'border' metrics are over the rim vertices (mesh boundary) of the open cylinder",
         ],
         "accuracy": [],
     }

@@ -60,7 +60,7 @@ __all__ = [
     "MAX_COND",
 ]
 
-#: Neighbourhood sizes tried by ``k="auto"`` (capped by the number of points).
+#: Neighbour counts tried by ``k="auto"`` (besides the point itself; capped by the data).
 AUTO_K_CANDIDATES = (12, 24, 48, 96, 192, 384)
 #: Jet orders tried by ``order="auto"``.
 AUTO_ORDERS = (2, 3, 4)
@@ -89,7 +89,7 @@ class DifferentialQuantities:
     order : (N,) int64
         Jet order actually fitted per point (the requested one unless reduced or automatic).
     n_neighbors : (N,) int64
-        Distinct neighbours used (the point itself included).
+        Distinct points used by the fit (the point itself included: ``k + 1`` normally).
     residual : (N,)
         RMS height residual of the fit (length unit): a local noise estimate.
     frame : (N, 3, 3)
@@ -568,14 +568,16 @@ def differential_quantities(
     normals : (N, 3) float, optional
         Input normals: only their signs are used, to orient the estimates.
     k : int or "auto"
-        Neighbourhood size, the point itself included (CGAL's convention); clipped to the
-        number of finite points. Must be at least ``n_coeffs(order)`` (6 for order 2).
+        Number of nearest neighbours besides the point itself, so that each fit uses
+        ``k + 1`` points: the convention of CGAL's ``jet_estimate_normals`` (same k, same
+        points, same result). Clipped to the number of finite points. Must be at least
+        ``n_coeffs(order) - 1`` (5 for order 2).
         ``"auto"``: per point, the largest of ``k_candidates`` whose normal still agrees with
         those of all smaller neighbourhoods within their noise-driven confidence intervals
         (intersection of confidence intervals, a bias-variance rule).
     radius : float, optional
         Use all neighbours within this distance (L) instead of k nearest (``k`` then caps
-        the count, nearest kept, unless ``k="auto"``).
+        the count at ``k + 1`` points, nearest kept, unless ``k="auto"``).
     rings : int, optional
         With ``faces``: use the mesh ``rings``-ring of each vertex as its neighbourhood.
     order : int or "auto"
@@ -648,17 +650,18 @@ def differential_quantities(
     auto_k = isinstance(k, str)
     if auto_k:
         check_choice(k, "k", ("auto",))
-        kc = sorted({check_int(c, "k_candidates", low=m_min) for c in k_candidates})
+        # kc: points per neighbourhood, the point itself included (k + 1)
+        kc = sorted({check_int(c, "k_candidates", low=m_min - 1) + 1 for c in k_candidates})
         if not kc:
             raise ValueError("k_candidates: expected at least one size")
     else:
         k = check_int(k, "k", low=1)
-        if k < m_min:
+        if k + 1 < m_min:
             raise ValueError(
                 f"k: an order-{min(orders)} jet has {m_min} coefficients, so k must be at least "
-                f"{m_min} (the point itself included), got {k}"
+                f"{m_min - 1} (k neighbours plus the point itself), got {k}"
             )
-        kc = [k]
+        kc = [k + 1]
     if radius is not None:
         radius = check_positive(radius, "radius")
     batch_size = check_int(batch_size, "batch_size", low=1)
@@ -705,8 +708,8 @@ def differential_quantities(
         o = np.argsort(r_d, axis=1, kind="stable")
         r_idx = np.take_along_axis(r_idx, o, 1)
         r_d = np.take_along_axis(r_d, o, 1)
-        if not auto_k and r_idx.shape[1] > k:
-            r_idx, r_d = r_idx[:, :k], r_d[:, :k]
+        if not auto_k and r_idx.shape[1] > kc[0]:
+            r_idx, r_d = r_idx[:, : kc[0]], r_d[:, : kc[0]]
         kmax = r_idx.shape[1]
     kq = min(kmax, max(n_fin, 1))
     k_graph = min(6, kq)

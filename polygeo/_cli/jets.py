@@ -48,9 +48,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--k",
         default="20",
-        help="neighbours per point, the point itself included (default 20; at least the number "
-        "of jet coefficients: 3, 6, 10, 15 for orders 1-4), or 'auto' to choose per point from "
-        "12..384 by a bias-variance rule",
+        help="nearest neighbours per point besides the point itself, as in CGAL (default 20; "
+        "at least the number of jet coefficients minus one: 2, 5, 9, 14 for orders 1-4), or "
+        "'auto' to choose per point from 12..384 by a bias-variance rule",
     )
     p.add_argument(
         "--radius",

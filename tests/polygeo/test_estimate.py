@@ -105,7 +105,7 @@ def test_convergence_order(order):
         z = np.exp(xy[:, 0] / 2) * np.cos(0.7 * xy[:, 1]) - 1 + 0.3 * xy[:, 0] * xy[:, 1]
         pts = np.c_[xy, z]
         normals = np.tile([0.0, 0.0, 1.0], (len(pts), 1))
-        res = differential_quantities(pts, normals=normals, k=len(pts), order=order)
+        res = differential_quantities(pts, normals=normals, k=len(pts) - 1, order=order)
         en.append(
             np.arctan2(np.linalg.norm(np.cross(res.normals[0], n_true)), res.normals[0] @ n_true)
         )
@@ -190,7 +190,7 @@ def test_repeated_points_are_deduplicated():
     res = differential_quantities(rep, k=20)
     assert (res.status == 0).all()
     np.testing.assert_allclose(res.mean_curvature, np.repeat(base.mean_curvature, 7), atol=1e-12)
-    assert (res.n_neighbors == 20).all()
+    assert (res.n_neighbors == 21).all()
 
 
 def test_duplicate_within_neighbourhood_only():
@@ -203,10 +203,12 @@ def test_duplicate_within_neighbourhood_only():
 
 def test_k_smaller_than_coefficients_raises():
     s = sy.sphere(100)
-    with pytest.raises(ValueError, match="at least 6"):
-        differential_quantities(s.points, k=5, order=2)
-    with pytest.raises(ValueError, match="at least 15"):
+    with pytest.raises(ValueError, match="at least 5"):
+        differential_quantities(s.points, k=4, order=2)
+    with pytest.raises(ValueError, match="at least 14"):
         differential_quantities(s.points, k=10, order=4)
+    # k = 5 neighbours + the point itself = 6 points: exactly enough for order 2
+    assert (differential_quantities(s.points, k=5, order=2).n_neighbors == 6).all()
 
 
 def test_few_points_status_not_nan():
