@@ -268,6 +268,7 @@ class Config:
     texture_size: int = 512
     supersample: int = 4
     seed: int = 0
+    t_end: float = 1.0  # frames sample t in [0, t_end] (a shorter, slower clip when < 1)
 
 
 def sequence_geometry(cfg: Config):
@@ -275,7 +276,7 @@ def sequence_geometry(cfg: Config):
     ab, faces, uvs = sheet_grid(cfg.grid[0], cfg.grid[1], *cfg.sheet)
     verts = []
     for i in range(cfg.frames):
-        t = i / max(cfg.frames - 1, 1)
+        t = cfg.t_end * i / max(cfg.frames - 1, 1)
         X = deform(cfg.kind, ab, t, cfg.sheet)
         R, T = pose(cfg.kind, t, cfg.distance)
         verts.append(X @ R.T + T)
@@ -316,6 +317,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--texture-size", type=int, default=512)
     ap.add_argument("--supersample", type=int, default=4)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--t-end", type=float, default=1.0,
+                    help="the frames cover t in [0, T_END] of the motion (default 1)")
     ap.add_argument("--overwrite", action="store_true")
     ap.add_argument("--quiet", action="store_true")
     a = ap.parse_args(argv)
@@ -329,6 +332,7 @@ def main(argv: list[str] | None = None) -> int:
             texture_size=a.texture_size,
             supersample=a.supersample,
             seed=a.seed,
+            t_end=a.t_end,
         )
         out = Path(a.out) / k if a.all else Path(a.out)
         generate(cfg, out, overwrite=a.overwrite, progress=not a.quiet)

@@ -15,7 +15,7 @@ __all__ = ["register", "demo", "run", "SAMPLE", "DEMO_SETTINGS"]
 SAMPLE = Path(__file__).resolve().parent / "samples" / "bend"
 
 #: Settings of the demo (a reduced budget so that it runs in about a minute; see ``demo``).
-DEMO_SETTINGS = {"patience": 20, "frame_period": 60, "overlays": 2}
+DEMO_SETTINGS = {"patience": 20, "frame_period": 60, "init": "extrapolate", "overlays": 2}
 
 
 def _set_threads(n: int | None) -> None:
