@@ -192,6 +192,8 @@ class VTKRenderer:
         import vtk
 
         self.pv, self.vtk = pv, vtk
+        # the X-server probe before the EGL fallback logs a harmless warning: silence it
+        vtk.vtkLogger.SetStderrVerbosity(vtk.vtkLogger.VERBOSITY_OFF)
         self.S = int(supersample)
         self.W, self.H = int(width), int(height)
         Ks = np.asarray(K, float).copy()

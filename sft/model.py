@@ -13,14 +13,16 @@ thesis' ``O o (R_c phi(u + Du, v + Dv; alpha + Dalpha) + T_c)``) and ``r`` is th
 residual of the template fit along the patch normal, kept fixed so that zero parameters give the
 template back exactly.
 
-Units. Every patch frame is scaled so that its points lie in the unit disc of the ``uv``
-plane (``s_k`` = the patch radius), and the global frame so that the template fits in the unit
-disc too (``s_g`` = the template radius, 15 cm for a 24 x 18 cm sheet). All parameters live in
+Units. Every patch frame is scaled so that its points lie in the unit ball around its
+centroid (``s_k`` = the patch radius, :class:`polygeo.patches.PatchSet`); with one patch the
+rigid motion acts in that frame (``O_g = O``, 15 cm for a 24 x 18 cm sheet), with several in
+the template's PCA frame scaled to the unit disc. All parameters live in
 these normalised units, which is what makes the thesis' learning rates (1e-3 for ``Delta uv``,
 1e-2 for ``Delta alpha``, 1e-4 for the rigid motion) independent of the scene's units
 (metres here).
 
-Several patches (``patches > 1``) come from :func:`polygeo.partition.partition_mesh`. Each
+The patches are a :class:`polygeo.patches.PatchSet` (PCA frames; several patches come from
+its partition of the template). Each
 vertex belongs to one patch; a vertex on a patch boundary is also represented as a secondary
 sample in every adjacent patch, and the boundary-consistency term (thesis eq. (51)) pulls each
 secondary sample onto its primary and aligns their jet normals.
@@ -133,7 +135,7 @@ class JetTemplate:
         *,
         seed: int = 0,
     ) -> JetTemplate:
-        """Fit jet patches to a template mesh.
+        """Fit PolyFit patches (:class:`polygeo.patches.PatchSet`, PCA frames) to a template.
 
         Parameters
         ----------
@@ -156,34 +158,60 @@ class JetTemplate:
         Raises
         ------
         ValueError
-            On bad shapes, non-finite vertices, an order out of range, or fewer vertices in a
-            patch than coefficients of the jet.
+            On bad shapes, non-finite vertices, an order out of range, or fewer vertices in
+            the template than coefficients of the jet.
         """
+        from polygeo.patches import PatchSet
+
         v = as_tensor(verts, "verts", dtype=torch.float64).detach()
         check_shape(v, "verts", ("V", 3))
         check_finite(v, "verts")
         order = check_int(order, "order", low=1, high=jets.MAX_ORDER)
         patches = check_int(patches, "patches", low=1, high=max(1, v.shape[0]))
-        V = v.shape[0]
         m = jets.n_coeffs(order)
-        if patches == 1:
-            labels = np.zeros(V, dtype=np.int64)
-            bpairs = np.zeros((0, 2), dtype=np.int64)
-        else:
-            from polygeo.partition import partition_mesh
+        if v.shape[0] < m:
+            raise ValueError(
+                f"verts: the template has {v.shape[0]} vertices, fewer than the {m} "
+                f"coefficients of an order-{order} jet; use a lower order"
+            )
+        ps = PatchSet.fit(v, np.asarray(faces), n_patches=patches, order=order, orient="pca",
+                          seed=seed)
+        return cls.from_patchset(ps, v)
 
-            part = partition_mesh(v.numpy(), np.asarray(faces), patches, seed=seed,
-                                  min_vertices=2 * m)
-            labels, bpairs = part.labels, part.boundary_pairs
-        K = int(labels.max()) + 1
+    @classmethod
+    def from_patchset(cls, ps, verts=None) -> JetTemplate:
+        """Sample a :class:`polygeo.patches.PatchSet` at the template's vertices.
+
+        Every vertex is a primary sample of its own patch (``ps.labels``); the ends of every
+        boundary edge (``ps.boundary_pairs``) are also secondary samples of the other patch.
+        ``uv`` is the projection on each patch's plane and ``residual`` the height left
+        over by the jet, so that zero offsets give the vertices back exactly.
+
+        Parameters
+        ----------
+        ps : PatchSet
+            Patches fitted to the template.
+        verts : array_like, optional
+            ``(V, 3)`` template vertices (default: ``ps.vertices``).
+
+        Returns
+        -------
+        JetTemplate
+        """
+        v = ps.vertices if verts is None else as_tensor(verts, "verts", dtype=torch.float64)
+        v = v.detach().to(torch.float64)
+        V = v.shape[0]
+        labels = ps.labels.cpu().numpy().astype(np.int64)
+        bpairs = ps.boundary_pairs.cpu().numpy().astype(np.int64).reshape(-1, 2)
+        K = ps.n_patches
         # samples: every vertex in its own patch, boundary vertices also in adjacent patches
-        sp = [labels]
-        sv = [np.arange(V)]
-        la, lb = labels[bpairs[:, 0]], labels[bpairs[:, 1]]
-        extra = np.unique(
-            np.concatenate([np.stack([bpairs[:, 0], lb], 1), np.stack([bpairs[:, 1], la], 1)]),
-            axis=0,
-        ) if len(bpairs) else np.zeros((0, 2), dtype=np.int64)
+        sp, sv = [labels], [np.arange(V)]
+        if len(bpairs):
+            la, lb = labels[bpairs[:, 0]], labels[bpairs[:, 1]]
+            extra = np.unique(np.concatenate([np.stack([bpairs[:, 0], lb], 1),
+                                              np.stack([bpairs[:, 1], la], 1)]), axis=0)
+        else:
+            extra = np.zeros((0, 2), dtype=np.int64)
         sp.append(extra[:, 1])
         sv.append(extra[:, 0])
         sp_np, sv_np = np.concatenate(sp), np.concatenate(sv)
@@ -197,47 +225,29 @@ class JetTemplate:
         primary = torch.from_numpy(where[:V]).long()
         sec = where[V:]
         pairs = torch.stack([primary[sample_vertex[sec]], torch.from_numpy(sec).long()], 1)
-        S = len(sample_patch)
-        # per-patch frames and jets
-        s_all = torch.empty(K, dtype=torch.float64)
-        R_all = torch.empty(K, 3, 3, dtype=torch.float64)
-        T_all = torch.empty(K, 3, dtype=torch.float64)
-        coeffs = torch.zeros(K, m, dtype=torch.float64)
-        uv = torch.empty(S, 2, dtype=torch.float64)
-        resid = torch.empty(S, dtype=torch.float64)
-        gframe = _global_frame(v)
-        normal_ref = gframe.R[0, :, 2]
-        for k in range(K):
-            idx = torch.nonzero(sample_patch == k).flatten()
-            pts = v[sample_vertex[idx]]
-            if len(idx) < m:
-                raise ValueError(
-                    f"patches: patch {k} has {len(idx)} vertices, fewer than the {m} "
-                    f"coefficients of an order-{order} jet; use fewer patches or a lower order"
-                )
-            fr = pca_frames(pts[None], reference_normal=normal_ref[None])
-            local = (pts - fr.centroid) @ fr.rotation[0]
-            s = local[:, :2].norm(dim=-1).max().clamp_min(1e-12)
-            local = local / s
-            res = jets.fit(local[None, :, :2], local[None, :, 2], order)
-            coeffs[k] = res.coeffs[0].to(torch.float64)
-            z = jets.evaluate(coeffs[k : k + 1], local[None, :, :2])[0]
-            uv[idx] = local[:, :2]
-            resid[idx] = local[:, 2] - z
-            s_all[k], R_all[k], T_all[k] = s, fr.rotation[0], fr.centroid[0]
-        orient = Orientation(s_all, R_all, T_all)
-        fit_rms = float((resid * s_all[sample_patch]).pow(2).mean().sqrt())
+        orient = Orientation(ps.scale.to(torch.float64), ps.rotation.to(torch.float64),
+                             ps.translation.to(torch.float64))
+        coeffs = ps.coeffs.to(torch.float64).detach()
+        pts = v[sample_vertex]
+        s_, R_, T_ = (orient.s[sample_patch], orient.R[sample_patch], orient.T[sample_patch])
+        local = ((pts - T_)[:, None, :] @ R_)[:, 0] / s_[:, None]  # (S, 3) canonical
+        uv = local[:, :2].contiguous()
+        z = (jets.monomials(uv, jets.order_from_ncoeffs(coeffs.shape[1]))
+             * coeffs[sample_patch]).sum(-1)
+        resid = local[:, 2] - z
+        frame = orient[0] if K == 1 else _global_frame(v)
+        fit_rms = float((resid * s_).pow(2).mean().sqrt())
         return cls(
             orientation=orient,
             coeffs=coeffs,
-            order=order,
+            order=jets.order_from_ncoeffs(coeffs.shape[1]),
             sample_patch=sample_patch,
             sample_vertex=sample_vertex,
             uv=uv,
             residual=resid,
             primary=primary,
             pairs=pairs,
-            frame=gframe,
+            frame=frame,
             fit_rms=fit_rms,
         )
 

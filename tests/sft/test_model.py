@@ -49,7 +49,8 @@ def test_jet_fit_exact_on_polynomial_sheet():
     t = JetTemplate.fit(v, f, order=2)
     assert t.fit_rms < 1e-12
     assert t.n_patches == 1 and t.n_samples == len(v)
-    assert float(t.uv.norm(dim=1).max()) == pytest.approx(1.0)  # normalised to the unit disc
+    r = float(t.uv.norm(dim=1).max())
+    assert 0.9 < r <= 1.0 + 1e-12  # normalised: the patch lies in the unit ball
 
 
 def test_rigid_parameters_move_rigidly():
@@ -160,7 +161,7 @@ def test_model_validation():
     with pytest.raises(ValueError, match="verts: expected finite values"):
         build_model("vertex", bad, f)
     vs, fs = sheet(4, 3)
-    with pytest.raises(ValueError, match="patches: patch 0 has 12 vertices, fewer than the 28"):
+    with pytest.raises(ValueError, match="verts: the template has 12 vertices, fewer than the 28"):
         JetTemplate.fit(vs, fs, order=6)
     m = JetModel(JetTemplate.fit(v, f, order=3))
     with pytest.raises(ValueError, match="order: expected an integer in \\[1, 3\\]"):
