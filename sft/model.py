@@ -297,6 +297,10 @@ class DeformationModel:
         """Model-specific extra loss (boundary consistency), a scalar (0 when none)."""
         return torch.zeros((), dtype=self.dtype)
 
+    def forward(self, params: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(vertices, regularizer)`` in one call (what the optimiser uses)."""
+        return self.vertices(params), self.regularizer(params)
+
     def state(self) -> dict:
         """Mutable state to checkpoint (e.g. the active jet order)."""
         return {}
@@ -385,48 +389,58 @@ class JetModel(DeformationModel):
     def _active(self) -> torch.Tensor:
         return (self._degree <= self.order).to(self.dtype)  # (M,)
 
-    def _evaluate(self, params: dict[str, torch.Tensor], normals: bool = False):
-        """Samples in camera coordinates, before the rigid motion, and their jet normals.
+    def _evaluate(self, params: dict[str, torch.Tensor]):
+        """Samples in camera coordinates ``(F, S, 3)``, before the rigid motion.
 
-        Returns ``(F, S, 3)`` points and ``(F, S, 3)`` unit normals (None unless ``normals``).
+        Also returns the offset coefficients ``(F, K, M)`` and displaced ``uv`` ``(F, S, 2)``.
         """
         uv = self._uv + params["d_uv"]  # (F, S, 2)
         coeff = self._coeffs + params["d_alpha"] * self._active()  # (F, K, M)
         o = self._orient
-        xs, ns = [], []
+        xs = []
         for k, sl in enumerate(self._slices):
             uvk = uv[:, sl]
             ck = coeff[:, k, :, None]  # (F, M, 1)
             z = (jets.monomials(uvk, self.max_order) @ ck)[..., 0] + self._resid[sl]
             pts = torch.cat([uvk, z[..., None]], dim=-1)  # (F, S_k, 3) local
             xs.append(o.s[k] * (pts @ o.R[k].T) + o.T[k])
-            if normals:
-                zu = (jets.monomial_derivatives(uvk, self.max_order, 1, 0) @ ck)[..., 0]
-                zv = (jets.monomial_derivatives(uvk, self.max_order, 0, 1) @ ck)[..., 0]
-                n = torch.stack([-zu, -zv, torch.ones_like(zu)], dim=-1)
-                ns.append((n / n.norm(dim=-1, keepdim=True)) @ o.R[k].T)
         x = xs[0] if len(xs) == 1 else torch.cat(xs, dim=1)
-        n = None if not normals else (ns[0] if len(ns) == 1 else torch.cat(ns, dim=1))
-        return x, n
+        return x, coeff, uv
+
+    def _boundary(self, x: torch.Tensor, coeff: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+        t = self.template
+        a, b = t.pairs[:, 0], t.pairs[:, 1]
+        xn = x / self.scale  # normalised units
+        d2 = (xn[:, a] - xn[:, b]).pow(2).sum(-1)  # (F, P)
+        normals = []
+        for idx in (a, b):  # jet normals at the pair samples only
+            kp = t.sample_patch[idx]
+            c = coeff[:, kp]  # (F, P, M)
+            q = uv[:, idx]
+            zu = (jets.monomial_derivatives(q, self.max_order, 1, 0) * c).sum(-1)
+            zv = (jets.monomial_derivatives(q, self.max_order, 0, 1) * c).sum(-1)
+            n = torch.stack([-zu, -zv, torch.ones_like(zu)], dim=-1)
+            n = n / n.norm(dim=-1, keepdim=True)
+            normals.append(torch.einsum("pij,fpj->fpi", self._orient.R[kp], n))
+        cos = (normals[0] * normals[1]).sum(-1)
+        return (self.k_b * d2 + self.k_bn * (1.0 - cos).pow(2)).mean()
 
     def vertices(self, params: dict[str, torch.Tensor]) -> torch.Tensor:
         """``(F, V, 3)`` camera-frame vertices (scene units) of stacked parameters."""
-        x, _ = self._evaluate(params)
-        if not self._identity:
-            x = x.index_select(1, self.template.primary)
-        return _rigid(x, self._frame, params["rot"], params["trans"])
+        return self.forward(params)[0]
 
     def regularizer(self, params: dict[str, torch.Tensor]) -> torch.Tensor:
         """Boundary consistency (eq. (51)) averaged over pairs and frames; 0 for one patch."""
-        t = self.template
-        if len(t.pairs) == 0:
-            return torch.zeros((), dtype=self.dtype)
-        x, n = self._evaluate(params, normals=True)
-        x = x / self.scale  # normalised units
-        a, b = t.pairs[:, 0], t.pairs[:, 1]
-        d2 = (x[:, a] - x[:, b]).pow(2).sum(-1)
-        cos = (n[:, a] * n[:, b]).sum(-1)
-        return (self.k_b * d2 + self.k_bn * (1.0 - cos).pow(2)).mean()
+        return self.forward(params)[1]
+
+    def forward(self, params: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Vertices ``(F, V, 3)`` and the boundary term (scalar) from one evaluation."""
+        x, coeff, uv = self._evaluate(params)
+        reg = (torch.zeros((), dtype=self.dtype) if len(self.template.pairs) == 0
+               else self._boundary(x, coeff, uv))
+        if not self._identity:
+            x = x.index_select(1, self.template.primary)
+        return _rigid(x, self._frame, params["rot"], params["trans"]), reg
 
 
 class VertexModel(DeformationModel):

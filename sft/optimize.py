@@ -440,12 +440,12 @@ def _optimize_window(model: DeformationModel, terms: ImageTerms, inext: Inextens
     it = 0
     for it in range(1, st.frame_period + 1):  # noqa: B007 - `it` is reported after the loop
         opt.zero_grad(set_to_none=True)
-        verts = model.vertices(params)
+        verts, reg = model.forward(params)
         img = terms(verts, targets, masks)
         per_frame = img["rgb"] + inext(verts)
         if "sil" in img:
             per_frame = per_frame + img["sil"]
-        loss = per_frame.sum() + model.regularizer(params)
+        loss = per_frame.sum() + reg
         if st.k_tc > 0 and len(idx) > 1:
             loss = loss + temporal_consistency(params, model.temporal, st.k_tc)
         loss.backward()
