@@ -854,10 +854,9 @@ def chart(record, png):
     acc = [a for a in record["accuracy"] if "pts_per_s" in a]
     fig, axes = plt.subplots(1, 3, figsize=(18, 5.5))
     ax_n, ax_h, ax_p = axes
-    size = max(a["n"] for a in acc) if acc else 0
-    sel = [a for a in acc if a["surface"] == "torus" and a["noise"] == 0.001 and a["n"] == size]
-    if not sel:
-        sel = [a for a in acc if a["n"] == size]
+    tor = [a for a in acc if a["surface"] == "torus" and a["noise"] == 0.001]
+    size = max((a["n"] for a in tor), default=0)
+    sel = [a for a in tor if a["n"] == size]
     methods = sorted({a["method"] for a in sel})
     for m in methods:
         rows = [a for a in sel if a["method"] == m]

@@ -476,11 +476,24 @@ def _select_order(fits: list[jets.JetFit], orders: tuple[int, ...], alpha: float
     return cur
 
 
-def _ici_select(normals: list[np.ndarray], delta: list[np.ndarray], gamma: float) -> np.ndarray:
+#: Width of the ICI confidence intervals (in estimated standard deviations).
+_ICI_GAMMA = 3.0
+#: Standard deviation of an order-2 fit's H in units of sigma / (r^2 sqrt(n)).
+_ICI_H_FACTOR = 3.0
+
+
+def _ici_select(
+    normals: list[np.ndarray],
+    delta: list[np.ndarray],
+    gamma: float,
+    scalars: list[np.ndarray] | None = None,
+    scalar_deltas: list[np.ndarray] | None = None,
+) -> np.ndarray:
     """Pick a neighbourhood size by intersection of confidence intervals (ICI).
 
     Over increasing k: the last candidate whose normal stays within ``gamma (delta_i +
-    delta_j)`` of every smaller neighbourhood's normal.
+    delta_j)`` of every smaller neighbourhood's normal (and, when given, whose scalar, e.g.
+    the mean curvature, stays within ``gamma`` times the sum of the scalar deltas).
     """
     Q = normals[0].shape[0]
     chosen = np.zeros(Q, dtype=np.int64)
@@ -491,6 +504,9 @@ def _ici_select(normals: list[np.ndarray], delta: list[np.ndarray], gamma: float
             cosang = np.abs(np.einsum("ij,ij->i", normals[c], normals[j]))
             ang = np.arccos(np.clip(cosang, 0.0, 1.0))
             ok &= ang <= gamma * (delta[c] + delta[j])
+            if scalars is not None:
+                gap = np.abs(scalars[c] - scalars[j])
+                ok &= gap <= gamma * (scalar_deltas[c] + scalar_deltas[j])
         ok &= np.isfinite(delta[c])
         chosen = np.where(ok, c, chosen)
         alive = ok
@@ -793,16 +809,26 @@ def differential_quantities(
             per_size.append((local, co, stat, ford, rres, npts))
         if len(per_size) > 1:
             geoms = [_geometry(ps[1], ps[0].R) for ps in per_size]
-            deltas = []
-            for ps in per_size:
+            deltas, deltas_h, hs = [], [], []
+            n_ref = geoms[0]["normals"]
+            for ps, g in zip(per_size, geoms):
                 local, _, _, ford, rres, npts = ps
                 mm = np.array([jets.n_coeffs(max(o, 1)) for o in ford])
                 dof = np.maximum(npts - mm, 1)
                 sigma = rres * np.sqrt(npts / dof)
+                r = np.maximum(local.radius, 1e-300)
                 with np.errstate(divide="ignore", invalid="ignore"):
-                    d = sigma / (np.maximum(local.radius, 1e-300) * np.sqrt(np.maximum(npts, 1)))
-                deltas.append(np.where(ps[2] == 0, d, np.inf))
-            choice = _ici_select([g["normals"] for g in geoms], deltas, gamma=2.0)
+                    d = sigma / (r * np.sqrt(np.maximum(npts, 1)))
+                ok_s = ps[2] == 0
+                deltas.append(np.where(ok_s, d, np.inf))
+                # H of an order-2 fit has a standard deviation of a few sigma / (r^2 sqrt(n))
+                deltas_h.append(np.where(ok_s, _ICI_H_FACTOR * d / r, np.inf))
+                side = np.sign(np.einsum("ij,ij->i", g["normals"], n_ref))
+                hs.append(g["mean_curvature"] * np.where(side == 0, 1.0, side))
+            choice = _ici_select(
+                [g["normals"] for g in geoms], deltas, gamma=_ICI_GAMMA, scalars=hs,
+                scalar_deltas=deltas_h,
+            )
         else:
             choice = np.zeros(q.size, dtype=np.int64)
         for s_i, ps in enumerate(per_size):
