@@ -16,7 +16,7 @@ FAST = {"patience": 20, "frame_period": 60, "overlays": 0}
 
 @pytest.mark.parametrize("method", ["polysft", "vertex"])
 def test_small_deformation_beats_fixed_template(make_sequence, tmp_path, method):
-    seq = make_sequence("small", 10)
+    seq = make_sequence("small", 10, size=64, grid=(12, 9))
     res = run_sft(seq, tmp_path / method, SfTSettings(method=method, **FAST), progress=False,
                   max_frames=4)
     rows = res.rows[1:]  # frame 0 is the template itself
@@ -29,7 +29,7 @@ def test_small_deformation_beats_fixed_template(make_sequence, tmp_path, method)
 
 
 def test_rigid_sequence_recovered_by_rigid_parameters(make_sequence, tmp_path):
-    seq = load_sequence(make_sequence("rigid", 4))
+    seq = load_sequence(make_sequence("rigid", 4, size=64, grid=(12, 9)))
     st = SfTSettings(freeze=("d_alpha", "d_uv"), lr_rigid=2e-3, **FAST)
     res = run_sft(seq, tmp_path / "rigid", st, progress=False)
     rows = res.rows[1:]
@@ -45,7 +45,7 @@ def test_rigid_sequence_recovered_by_rigid_parameters(make_sequence, tmp_path):
 
 
 def test_resume_equals_uninterrupted(make_sequence, tmp_path):
-    seq = load_sequence(make_sequence("small", 4))
+    seq = load_sequence(make_sequence("small", 4, size=64, grid=(12, 9)))
     st = SfTSettings(patience=5, frame_period=12, overlays=0)
     full = run_sft(seq, tmp_path / "full", st, progress=False, charts=False)
     part = run_sft(seq, tmp_path / "cut", st, progress=False, max_windows=2, charts=False)
@@ -68,7 +68,7 @@ def test_resume_equals_uninterrupted(make_sequence, tmp_path):
 
 
 def test_outputs(make_sequence, tmp_path):
-    seq = load_sequence(make_sequence("small", 4))
+    seq = load_sequence(make_sequence("small", 4, size=64, grid=(12, 9)))
     st = SfTSettings(patience=5, frame_period=10, overlays=2)
     res = run_sft(seq, tmp_path / "o", st, progress=False, max_frames=3)
     out = tmp_path / "o"
@@ -89,7 +89,7 @@ def test_outputs(make_sequence, tmp_path):
 @pytest.mark.slow
 def test_long_optimisation_does_not_drift(make_sequence):
     """Thesis Fig. 5.9: 5000 iterations on one window stay near the usual budget's result."""
-    seq = load_sequence(make_sequence("small", 4))
+    seq = load_sequence(make_sequence("small", 4, size=64, grid=(12, 9)))
     gt = np.stack([seq.gt(2), seq.gt(3)])
     e_tmpl = float(e_3d(np.stack([seq.template.verts] * 2), gt).mean())
     at = {}
@@ -100,9 +100,11 @@ def test_long_optimisation_does_not_drift(make_sequence):
 
     st = SfTSettings(patience=10**6, frame_period=5000)
     reconstruct_window(seq, [2, 3], st, callback=cb)
-    assert at[300] < 0.5 * e_tmpl
+    assert at[300] < 0.5 * e_tmpl, (at, e_tmpl)
+    # measured here: e_tmpl 0.036; e_3d 0.0049 / 0.0041 / 0.0039 at 300 / 1000 / 5000
     for it in (1000, 5000):
-        assert abs(at[it] - at[300]) < 0.1 * e_tmpl, at
+        assert abs(at[it] - at[300]) < 0.05 * e_tmpl, (at, e_tmpl)
+    assert at[5000] < 1.2 * at[300], at
 
 
 def test_settings_validation():
@@ -125,7 +127,7 @@ def test_settings_validation():
 
 
 def test_everything_frozen_is_refused(make_sequence, tmp_path):
-    seq = make_sequence("small", 4)
+    seq = make_sequence("small", 4, size=64, grid=(12, 9))
     st = SfTSettings(freeze=("d_alpha", "d_uv", "rot", "trans"), **FAST)
     with pytest.raises(ValueError, match="every parameter of the model is frozen"):
         run_sft(seq, tmp_path / "x", st, progress=False)
@@ -134,7 +136,7 @@ def test_everything_frozen_is_refused(make_sequence, tmp_path):
 def test_cli_runs_and_writes(make_sequence, tmp_path, capsys):
     from polygeo.cli import main
 
-    seq = make_sequence("small", 4)
+    seq = make_sequence("small", 4, size=64, grid=(12, 9))
     code = main(["sft", str(seq), "-o", str(tmp_path / "cli"), "--max-frames", "2",
                  "--patience", "3", "--frame-period", "6", "--order", "3", "--quiet"])
     assert code == 0
