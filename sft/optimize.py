@@ -102,6 +102,10 @@ class SfTSettings:
     init : {"previous", "extrapolate"}
         How a frame entering the window starts: from the previous frame's parameters
         (thesis), or extrapolated at constant velocity from the two previous frames.
+    carry_adam : bool
+        Keep each frame's Adam moments across windows (a frame entering the window inherits
+        those of the previous frame). False restarts Adam in every window, which kicks every
+        parameter by about its learning rate in the first steps.
     freeze : tuple of str
         Parameters kept at their initial value (e.g. ``("d_alpha", "d_uv")`` optimises the
         rigid motion alone).
@@ -138,6 +142,7 @@ class SfTSettings:
     gamma: float = 1e-4
     dtype: str = "float32"
     init: str = "previous"
+    carry_adam: bool = True
     freeze: tuple[str, ...] = ()
     checkpoint_every: int = 1
     overlays: int = 4
@@ -364,7 +369,7 @@ def run_sft(
         iters, curve, loss_val = _optimize_window(model, terms, inext, settings, pending, idx,
                                                   targets, masks)
         with torch.no_grad():
-            p = {k: v[None] for k, v in pending[s].items()}
+            p = {k: pending[s][k][None] for k in model.init_params()}
             X = model.vertices(p)[0].to(torch.float64)
         write_ply(out / "meshes" / f"{s:06d}.ply", X.numpy(), t.faces)
         row: dict[str, Any] = {"frame": s, "iterations": iters, "loss": loss_val,
@@ -413,9 +418,11 @@ def _initial(model: DeformationModel, st: SfTSettings, prev: dict | None,
     """Parameters of a frame entering the window (see ``SfTSettings.init``)."""
     if prev is None:
         return model.init_params()
+    out = {k: (v.clone() if isinstance(v, torch.Tensor) else v) for k, v in prev.items()}
     if st.init == "extrapolate" and prev2 is not None:
-        return {k: 2 * prev[k] - prev2[k] for k in prev}
-    return {k: v.clone() for k, v in prev.items()}
+        for k in model.init_params():  # the parameters; the Adam moments are copied
+            out[k] = 2 * prev[k] - prev2[k]
+    return out
 
 
 def _optimize_window(model: DeformationModel, terms: ImageTerms, inext: Inextensibility,
@@ -432,14 +439,15 @@ def _optimize_window(model: DeformationModel, terms: ImageTerms, inext: Inextens
         raise ValueError(f"freeze: every parameter of the model is frozen ({names})")
     for n in free:
         params[n].requires_grad_(True)
-    groups = [{"params": [params[n]], "lr": getattr(st, model.groups[n])} for n in free]
-    opt = torch.optim.Adam(groups)
+    opt = _FrameAdam(params, free, {n: getattr(st, model.groups[n]) for n in free},
+                     [pending[j] if st.carry_adam else {} for j in idx])
     best, since, curve = float("inf"), 0, []
     auto = st.method == "polysft" and st.order == ORDER_AUTO
     best_at_raise = None
     it = 0
     for it in range(1, st.frame_period + 1):  # noqa: B007 - `it` is reported after the loop
-        opt.zero_grad(set_to_none=True)
+        for n in free:
+            params[n].grad = None
         verts, reg = model.forward(params)
         img = terms(verts, targets, masks)
         per_frame = img["rgb"] + inext(verts)
@@ -469,7 +477,53 @@ def _optimize_window(model: DeformationModel, terms: ImageTerms, inext: Inextens
             break
     for k, j in enumerate(idx):
         pending[j] = {n: params[n][k].detach().clone() for n in names}
+        pending[j].update(opt.state_of(k))
     return it, curve, curve[-1] if curve else float("nan")
+
+
+class _FrameAdam:
+    """Adam (the torch.optim.Adam update) with per-frame moments and step counts.
+
+    The moments of a frame travel with it from window to window (``SfTSettings.carry_adam``)
+    and a frame entering the window inherits those of the frame before it, so a new window
+    does not restart every parameter with the lr-sized first steps of a fresh Adam.
+    """
+
+    B1, B2, EPS = 0.9, 0.999, 1e-8
+
+    def __init__(self, params: dict, names: list[str], lrs: dict, states: list[dict]):
+        self.params, self.names, self.lrs = params, names, lrs
+        F = len(states)
+        self.m = {n: torch.stack([s.get("_m:" + n, torch.zeros_like(params[n][k]))
+                                  for k, s in enumerate(states)]) for n in names}
+        self.v = {n: torch.stack([s.get("_v:" + n, torch.zeros_like(params[n][k]))
+                                  for k, s in enumerate(states)]) for n in names}
+        self.t = torch.tensor([float(s.get("_t", 0)) for s in states], dtype=torch.float64)
+        self.t = self.t.reshape(F)
+
+    @torch.no_grad()
+    def step(self) -> None:
+        self.t += 1.0
+        bc1 = 1.0 - self.B1 ** self.t
+        bc2 = 1.0 - self.B2 ** self.t
+        for n in self.names:
+            p, g = self.params[n], self.params[n].grad
+            if g is None:
+                continue
+            shape = (-1,) + (1,) * (p.ndim - 1)
+            m, v = self.m[n], self.v[n]
+            m.mul_(self.B1).add_(g, alpha=1.0 - self.B1)
+            v.mul_(self.B2).addcmul_(g, g, value=1.0 - self.B2)
+            denom = (v.sqrt() / bc2.sqrt().to(p.dtype).view(shape)).add_(self.EPS)
+            p.sub_((self.lrs[n] / bc1).to(p.dtype).view(shape) * m / denom)
+
+    def state_of(self, k: int) -> dict:
+        """Moments and step count of frame ``k`` of the window (checkpointed with it)."""
+        out: dict[str, Any] = {"_t": int(self.t[k])}
+        for n in self.names:
+            out["_m:" + n] = self.m[n][k].clone()
+            out["_v:" + n] = self.v[n][k].clone()
+        return out
 
 
 def reconstruct_window(
@@ -518,7 +572,7 @@ def reconstruct_window(
     iters, _, _ = _optimize_window(model, terms, inext, st, pending, list(frames), targets,
                                    masks, cb)
     with torch.no_grad():
-        p = {n: torch.stack([pending[j][n] for j in frames]) for n in pending[frames[0]]}
+        p = {n: torch.stack([pending[j][n] for j in frames]) for n in model.init_params()}
         X = model.vertices(p).to(torch.float64).numpy()
     return X, iters
 
