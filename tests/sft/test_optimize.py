@@ -146,3 +146,41 @@ def test_cli_runs_and_writes(make_sequence, tmp_path, capsys):
     rec = json.loads((tmp_path / "cli" / "metrics.json").read_text())
     assert rec["settings"]["order"] == 3 and rec["settings"]["patience"] == 3
     assert main(["sft", str(seq), "-o", str(tmp_path / "c2"), "--order", "x"]) == 2
+
+
+def test_frame_adam_matches_torch_adam():
+    """Fresh per-frame Adam = torch.optim.Adam; carried state continues the same sequence."""
+    from sft.optimize import _FrameAdam
+
+    g = torch.Generator().manual_seed(0)
+    p0 = torch.randn(3, 5, 2, generator=g, dtype=torch.float64)
+    grads = [torch.randn(3, 5, 2, generator=g, dtype=torch.float64) for _ in range(6)]
+    ref = p0.clone().requires_grad_(True)
+    opt = torch.optim.Adam([ref], lr=1e-2)
+    ours = {"a": p0.clone().requires_grad_(True)}
+    fa = _FrameAdam(ours, ["a"], {"a": 1e-2}, [{}, {}, {}])
+    for gr in grads[:3]:
+        ref.grad, ours["a"].grad = gr.clone(), gr.clone()
+        opt.step()
+        fa.step()
+    torch.testing.assert_close(ours["a"], ref, rtol=0, atol=1e-15)
+    # carry frame states into a new optimiser: the updates go on as one uninterrupted Adam
+    states = [fa.state_of(k) for k in range(3)]
+    assert states[0]["_t"] == 3
+    ours2 = {"a": ours["a"].detach().clone().requires_grad_(True)}
+    fa2 = _FrameAdam(ours2, ["a"], {"a": 1e-2}, states)
+    for gr in grads[3:]:
+        ref.grad, ours2["a"].grad = gr.clone(), gr.clone()
+        opt.step()
+        fa2.step()
+    torch.testing.assert_close(ours2["a"], ref, rtol=0, atol=1e-15)
+
+
+def test_auto_order_rises_on_plateaus(make_sequence, tmp_path):
+    seq = make_sequence("small", 10, size=64, grid=(12, 9))
+    st = SfTSettings(order="auto", max_order=4, patience=5, frame_period=60, auto_gain=0.0,
+                     overlays=0)
+    res = run_sft(seq, tmp_path / "auto", st, progress=False, max_frames=3, charts=False)
+    orders = [r["order"] for r in res.rows]
+    assert orders[0] >= 2 and orders == sorted(orders) and orders[-1] <= 4
+    assert orders[-1] > 2  # at least one raise happened
