@@ -31,7 +31,6 @@ import os
 import re
 import shutil
 import tempfile
-import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -718,13 +717,3 @@ def write_sequence(
         for f, m, g in zip(frames, ms, gs):
             w.add_frame(f, mask=m, gt=g)
     return Path(path)
-
-
-def _warn_no_masks(seq: Sequence) -> None:
-    """Warn once that a sequence has no masks (the silhouette term is then disabled)."""
-    warnings.warn(
-        f"{seq.root}: no masks/ folder: the silhouette loss is disabled and the RGB loss uses "
-        "every pixel (no mask is derived from the images)",
-        stacklevel=3,
-    )
-

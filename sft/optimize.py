@@ -587,11 +587,11 @@ def _overlay(path: Path, terms: ImageTerms, X: torch.Tensor, target: torch.Tenso
     err_img = None
     if gt is not None:
         err = (X - torch.as_tensor(gt)).norm(dim=-1)
-        err_img = terms_error_render(terms, X, err)
+        err_img = _error_render(terms, X, err)
     overlay_png(path, target.numpy(), rgb[0].numpy(), alpha[0].numpy(), err_img)
 
 
-def terms_error_render(terms: ImageTerms, X: torch.Tensor, err: torch.Tensor):
+def _error_render(terms: ImageTerms, X: torch.Tensor, err: torch.Tensor):
     """Render per-vertex errors (scene units) as vertex colours; return (image, vmax)."""
     from polygeo.render import render
 
