@@ -42,14 +42,28 @@ def _add_settings_args(p: argparse.ArgumentParser) -> None:
         "window": "sliding-window size W",
         "patience": "iterations without improvement that end a window",
         "frame_period": "most iterations per window",
+        "freeze": "comma-separated parameters kept fixed, e.g. d_alpha,d_uv",
+        "carry_adam": "true/false: keep Adam moments across windows",
     }
     for f in fields(SfTSettings):
-        if f.name in ("seed",):
-            continue
         flag = "--" + f.name.replace("_", "-")
-        typ = {"int": int, "float": float}.get(str(f.type), str)
+        typ = {"int": int, "float": float, "bool": _bool,
+               "tuple[str, ...]": _names}.get(str(f.type), str)
         g.add_argument(flag, dest=f.name, type=typ, default=None,
                        help=helps.get(f.name, f"default {f.default!r}"))
+
+
+def _bool(s: str) -> bool:
+    v = s.strip().lower()
+    if v in ("1", "true", "yes", "on"):
+        return True
+    if v in ("0", "false", "no", "off"):
+        return False
+    raise argparse.ArgumentTypeError(f"expected true or false, got {s!r}")
+
+
+def _names(s: str) -> tuple[str, ...]:
+    return tuple(x.strip() for x in s.split(",") if x.strip())
 
 
 def _settings_from(args: argparse.Namespace, base: dict | None = None):
