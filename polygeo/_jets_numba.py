@@ -310,7 +310,8 @@ def _residual2(uv, z, w, has_w, ok, b, K, ih, x, m):
 
 @nb.njit(cache=True, parallel=True)
 def _fit_kernel(uv, z, w, has_w, mask, has_mask, scale, has_scale, order, fallback, max_cond,
-                refine_above, ep, eq, coeffs, fitted, status, cond, resid, hout, count, rank):
+                refine_above, interp, ep, eq, coeffs, fitted, status, cond, resid, hout, count,
+                rank):
     B = uv.shape[0]
     K = uv.shape[1]
     M = _ncoef(order)
@@ -361,7 +362,7 @@ def _fit_kernel(uv, z, w, has_w, mask, has_mask, scale, has_scale, order, fallba
             m = 0
             while True:
                 if o == 0:
-                    x[0] = rhs[0] / mom[0, 0] if mom[0, 0] > 0.0 else 0.0
+                    x[0] = rhs[0] / mom[0, 0] if mom[0, 0] > 0.0 and not interp else 0.0
                     m = 1
                     st = _TOO_FEW if cnt < 3 else _DEGENERATE
                     break
@@ -404,6 +405,16 @@ def _fit_kernel(uv, z, w, has_w, mask, has_mask, scale, has_scale, order, fallba
                         _solve(L, Ld, m, g, y)
                         for j in range(m):
                             x[j] += D[j] * y[j]
+                    if interp:
+                        # constrained to x0 = 0: x - G e0 x0 / G00, G = D N^-1 D
+                        for j in range(m):
+                            g[j] = 0.0
+                        g[0] = D[0]
+                        _solve(L, Ld, m, g, y)
+                        f = x[0] / (D[0] * y[0])
+                        for j in range(m):
+                            x[j] -= D[j] * y[j] * f
+                        x[0] = 0.0
                     st = _OK if o == order else _REDUCED
                     break
                 if not fallback:
@@ -436,7 +447,7 @@ def _fit_kernel(uv, z, w, has_w, mask, has_mask, scale, has_scale, order, fallba
             rank[b] = M if st == _OK else -1  # filled in by the caller
 
 
-def fit_numba(uv, z, w, mask, s, order, fallback, max_cond, refine_above):
+def fit_numba(uv, z, w, mask, s, order, fallback, max_cond, refine_above, interpolate=False):
     """Run the compiled kernel on torch inputs; return the tuple the torch backend returns.
 
     ``mask`` is the caller's bool mask or None; non-finite samples and zero weights are
@@ -471,8 +482,8 @@ def fit_numba(uv, z, w, mask, s, order, fallback, max_cond, refine_above):
     rank = np.empty(B, dtype=np.int64)
     if B > 0:
         _fit_kernel(uv_np, z_np, w_np, has_w, m_np, has_mask, s_np, has_scale, order,
-                    bool(fallback), float(max_cond), float(refine_above), ep, eq, coeffs, fitted,
-                    status, cond, resid, h, count, rank)
+                    bool(fallback), float(max_cond), float(refine_above), bool(interpolate), ep,
+                    eq, coeffs, fitted, status, cond, resid, h, count, rank)
     out = [torch.from_numpy(a) for a in (coeffs, resid, rank, cond, h, status, fitted, count)]
     flagged = np.nonzero(rank < 0)[0]
     if flagged.size:

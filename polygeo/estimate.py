@@ -417,7 +417,8 @@ class _Local:
             )
 
 
-def _fit(local: _Local, order: int, weights: np.ndarray | None, max_cond: float) -> jets.JetFit:
+def _fit(local: _Local, order: int, weights: np.ndarray | None, max_cond: float,
+         interpolate: bool = False) -> jets.JetFit:
     return jets.fit(
         torch.from_numpy(local.uv),
         torch.from_numpy(local.z),
@@ -426,6 +427,7 @@ def _fit(local: _Local, order: int, weights: np.ndarray | None, max_cond: float)
         weights=None if weights is None else torch.from_numpy(weights),
         max_cond=max_cond,
         backend="numba",
+        interpolate=interpolate,
     )
 
 
@@ -516,7 +518,7 @@ def _ici_select(
 # ----------------------------------------------------------------------------- torch path
 
 
-def _torch_chunk(pts_t, qidx, nbr, valid, order, weights, max_cond):
+def _torch_chunk(pts_t, qidx, nbr, valid, order, weights, max_cond, interpolate=False):
     """Differentiable path with J1's frames / jets / diffgeo (one chunk)."""
     from .diffgeo import from_jet, to_world
     from .frames import pca_frames
@@ -532,7 +534,8 @@ def _torch_chunk(pts_t, qidx, nbr, valid, order, weights, max_cond):
     uvz = local @ R
     w = None if weights is None else torch.from_numpy(weights)
     fit = jets.fit(
-        uvz[..., :2], uvz[..., 2], order, mask=m, weights=w, max_cond=max_cond, backend="torch"
+        uvz[..., :2], uvz[..., 2], order, mask=m, weights=w, max_cond=max_cond, backend="torch",
+        interpolate=interpolate,
     )
     geom = to_world(from_jet(fit.coeffs).squeeze(1), R)
     return fit, geom, R
@@ -569,6 +572,7 @@ def differential_quantities(
     auto_orders: tuple[int, ...] = AUTO_ORDERS,
     alpha: float = 0.01,
     max_cond: float | None = None,
+    interpolate: bool = False,
 ) -> DifferentialQuantities:
     """Per-point normals, principal curvatures and directions, H and K by n-jet fitting.
 
@@ -632,6 +636,17 @@ def differential_quantities(
         measure about 6-30 at order 2 (up to a few 1e3 at order 4); points on two scan lines
         measure 1e4 and more at order 2 and give curvatures that are guesses across the
         lines, so they are fitted at a lower order and flagged ``ORDER_REDUCED``.
+    interpolate : bool
+        Constrain each jet to pass through its query point (Cazals & Pouget's interpolation
+        variant, :func:`polygeo.jets.fit`). Default False (approximation: the jet's constant
+        term is free). Use True for exact samples (vertices of analytic, CAD or subdivision
+        surfaces): at order 2 it removes about a quarter of the truncation bias of the
+        curvatures (measured median relative error of H, k = 20, 10k-vertex meshes: torus
+        1.7e-2 -> 1.3e-2, sphere 1.9e-3 -> 1.4e-3, open cylinder 1.4e-3 -> 1.1e-3); on noisy
+        samples (already at noise 0.01 % of the diagonal) it passes the jet through the noise
+        of the query point and about doubles the curvature error, hence not the default.
+        Re-fitting in the Monge frame of a first fit was measured too and changes nothing at
+        order 2 (median errors within 3 %), so it is not offered.
 
     Returns
     -------
@@ -652,6 +667,9 @@ def differential_quantities(
     check_choice(orient, "orient", ("auto", "input", "mesh", "propagate", "none"))
     check_choice(weights, "weights", (None, "gaussian"))
     check_choice(backend, "backend", ("auto", "numba", "torch"))
+    if not isinstance(interpolate, (bool, np.bool_)):
+        raise TypeError(f"interpolate: expected a bool, got {interpolate!r}")
+    interpolate = bool(interpolate)
     auto_order = isinstance(order, str)
     if auto_order:
         check_choice(order, "order", ("auto",))
@@ -780,7 +798,8 @@ def differential_quantities(
             local = _Local(P, rep[q], nbr, dist, nbr.shape[1])
             w = _gaussian_weights(local) if weights == "gaussian" else None
             mc = max_cond or MAX_COND[orders[0]]
-            fit, geom, R = _torch_chunk(pts_t, rep[q], nbr, local.valid, orders[0], w, mc)
+            fit, geom, R = _torch_chunk(pts_t, rep[q], nbr, local.valid, orders[0], w, mc,
+                                        interpolate)
             torch_parts.append((q, fit, geom, R))
             status[q] = fit.status.numpy()
             fitted_order[q] = fit.fitted_order.numpy()
@@ -794,7 +813,7 @@ def differential_quantities(
         for size in sizes:
             local = _Local(P, rep[q], nbr, dist, size)
             w = _gaussian_weights(local) if weights == "gaussian" else None
-            fits = [_fit(local, o, w, max_cond or MAX_COND[o]) for o in orders]
+            fits = [_fit(local, o, w, max_cond or MAX_COND[o], interpolate) for o in orders]
             pick = _select_order(fits, orders, alpha) if len(orders) > 1 else np.zeros(q.size, int)
             co = np.zeros((q.size, M))
             for j, fj in enumerate(fits):

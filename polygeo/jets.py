@@ -484,6 +484,7 @@ def fit(
     max_cond: float = _DEFAULT_MAX_COND,
     refine_above: float = 100.0,
     backend: str = "auto",
+    interpolate: bool = False,
 ) -> JetFit:
     """Fit n-jets to batches of height samples by weighted least squares.
 
@@ -523,6 +524,17 @@ def fit(
     backend : {"auto", "torch", "numba"}
         "torch" is differentiable; "numba" is fast and not differentiable; "auto" uses torch
         when a gradient is required (grad mode on and an input requires grad), else numba.
+    interpolate : bool
+        When True the jet is constrained to pass through the origin ``(u, v, z) = 0``
+        (constant coefficient fixed to 0: Cazals & Pouget's interpolation variant, for
+        samples expressed relative to a point that lies on the surface). The solution is the
+        equality-constrained least-squares one, obtained from the unconstrained solve as
+        ``x - G e0 x0 / G00`` with ``G`` the inverse normal matrix (same conditioning tests
+        and fallbacks; an order-0 fallback then gives the zero jet). On exact samples this
+        reduces the order-``n`` truncation bias (for an order-2 fit on a sphere it removes a
+        quarter of the bias of the curvature); on noisy samples it passes the jet through the
+        noise of the origin sample and roughly doubles the curvature error. Items solved by the
+        minimum-norm path (``fallback=False`` and rank deficient) are not constrained.
 
     Returns
     -------
@@ -544,6 +556,8 @@ def fit(
     ``B = 0`` and ``K = 0`` are answered (empty results; every item ``TOO_FEW_POINTS``).
     """
     check_choice(backend, "backend", ("auto", "torch", "numba"))
+    if not isinstance(interpolate, (bool, np.bool_)):
+        raise TypeError(f"interpolate: expected a bool, got {interpolate!r}")
     order, max_cond, refine_above, uv_t, z_t, w, m, s, out_dtype = _prepare_fit_inputs(
         uv, z, order, weights, mask, scale, max_cond, refine_above
     )
@@ -555,10 +569,12 @@ def fit(
     if backend == "numba":
         from ._jets_numba import fit_numba
 
-        res = fit_numba(uv_t, z_t, w, m, s, order, fallback, max_cond, refine_above)
+        res = fit_numba(uv_t, z_t, w, m, s, order, fallback, max_cond, refine_above,
+                        interpolate=bool(interpolate))
     else:
         valid = _valid_mask(uv_t, z_t, w, m)
-        res = _fit_torch_top(uv_t, z_t, w, valid, s, order, fallback, max_cond, refine_above)
+        res = _fit_torch_top(uv_t, z_t, w, valid, s, order, fallback, max_cond, refine_above,
+                             interpolate=bool(interpolate))
     coeffs, residual, rank, cond, h, status, fitted, count = res
     return JetFit(
         coeffs=coeffs.to(out_dtype),
@@ -589,7 +605,7 @@ def _unscale_factors(h: torch.Tensor, order: int) -> torch.Tensor:
     return h[:, None] ** (-deg)  # (B, M)
 
 
-def _fit_torch_top(uv, z, w, valid, s, order, fallback, max_cond, refine):
+def _fit_torch_top(uv, z, w, valid, s, order, fallback, max_cond, refine, interpolate=False):
     B, K = z.shape
     uv = uv.to(torch.float64)
     z = z.to(torch.float64)
@@ -604,7 +620,7 @@ def _fit_torch_top(uv, z, w, valid, s, order, fallback, max_cond, refine):
     su = uv / h[:, None, None]  # (B, K, 2) preconditioned parameters
     count = valid.sum(-1)
     cs, fitted, status, cond, rank = _fit_torch_scaled(su, z, w, count, order, fallback,
-                                                       max_cond, refine)
+                                                       max_cond, refine, interpolate)
     # Weighted RMS residual of the final fit (in scaled parameters; heights are unchanged).
     A = monomials(su, order)  # (B, K, M)
     r = z - torch.einsum("bkm,bm->bk", A, cs)
@@ -654,7 +670,7 @@ def _numerical_rank(Ne: torch.Tensor, max_cond: float) -> torch.Tensor:
     return (lam > top / (max_cond * max_cond)).sum(-1).to(torch.int64)
 
 
-def _fit_torch_scaled(su, z, w, count, order, fallback, max_cond, refine):
+def _fit_torch_scaled(su, z, w, count, order, fallback, max_cond, refine, interpolate=False):
     """Recursive torch solver in preconditioned parameters; returns scaled coefficients."""
     B = z.shape[0]
     M = n_coeffs(order)
@@ -694,20 +710,26 @@ def _fit_torch_scaled(su, z, w, count, order, fallback, max_cond, refine):
             g = torch.einsum("bkm,bk->bm", sel(Aw), r)
             dx = Dg * torch.cholesky_solve((Dg * g)[..., None], L)[..., 0]
             x = torch.where(need[:, None], x + dx, x)
+        if interpolate:
+            # constrained to x0 = 0: x - G e0 x0 / G00 with G = N^-1 = D Ne^-1 D
+            e0 = torch.zeros_like(x)
+            e0[:, 0] = 1.0
+            col = Dg * torch.cholesky_solve((Dg * e0)[..., None], L)[..., 0]
+            x = x - col * (x[:, :1] / col[:, :1])
         coeffs = x if every else coeffs.index_copy(0, good, x)
     if bad.numel():
         rank = rank.index_copy(0, bad, _numerical_rank(Ne[bad].detach(), max_cond))
         if fallback:
             if order > 1:
                 sub = _fit_torch_scaled(su[bad], z[bad], w[bad], count[bad], order - 1, True,
-                                        max_cond, refine)
+                                        max_cond, refine, interpolate)
                 xs, fo, st = sub[0], sub[1], sub[2]
                 st = torch.where(st == int(Status.OK), int(Status.ORDER_REDUCED), st)
             else:
                 wb, zb = w[bad], z[bad]
                 sw = wb.sum(-1)
                 mean = (wb * zb).sum(-1) / torch.where(sw > 0, sw, torch.ones_like(sw))
-                xs = mean[:, None]
+                xs = torch.zeros_like(mean)[:, None] if interpolate else mean[:, None]
                 fo = torch.zeros(bad.numel(), dtype=torch.int64)
                 st = torch.where(count[bad] < 3, int(Status.TOO_FEW_POINTS),
                                  int(Status.DEGENERATE))

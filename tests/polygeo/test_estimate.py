@@ -426,3 +426,54 @@ def test_validators(kwargs, exc):
     kw.update(kwargs)
     with pytest.raises(exc):
         differential_quantities(kw.pop("points"), **kw)
+
+
+# ------------------------------------------------------------------ interpolation variant
+
+
+def test_interpolation_reduces_truncation_bias_on_exact_samples():
+    # exact samples of a sphere: an order-2 fit through the point has a smaller bias of H
+    s = sy.sphere(4000, radius=2.0, seed=31)
+    free = differential_quantities(s.points, k=20, order=2)
+    thru = differential_quantities(s.points, k=20, order=2, interpolate=True)
+    e_free = np.median(np.abs(free.mean_curvature - s.mean_curvature))
+    e_thru = np.median(np.abs(thru.mean_curvature - s.mean_curvature))
+    assert e_thru < 0.85 * e_free
+    check_against(thru, s, n_deg=0.05, h_rel=0.02)
+    # the interpolated jets pass through the points: zero constant term
+    np.testing.assert_allclose(thru.coeffs[:, 0], 0.0, atol=1e-12)
+    # torch path agrees
+    t = differential_quantities(s.points[:500], k=20, interpolate=True, backend="torch")
+    n = differential_quantities(s.points[:500], k=20, interpolate=True)
+    np.testing.assert_allclose(t.mean_curvature, n.mean_curvature, atol=1e-9)
+
+
+def test_interpolation_is_worse_under_noise():
+    # why it is not the default: the jet inherits the noise of the query point
+    s = sy.sphere(4000, radius=2.0, seed=32, noise=0.002)
+    free = differential_quantities(s.noisy_points, k=20)
+    thru = differential_quantities(s.noisy_points, k=20, interpolate=True)
+    e_free = np.median(np.abs(free.mean_curvature - s.mean_curvature))
+    e_thru = np.median(np.abs(thru.mean_curvature - s.mean_curvature))
+    assert e_thru > 1.3 * e_free
+
+
+@pytest.mark.parametrize("order", [2, 3])
+def test_convergence_order_interpolating(order):
+    rng = np.random.default_rng(7)
+    pattern = rng.uniform(-1, 1, size=(60, 2))
+    n_true, h_true = graph_truth()
+    hs = np.array([0.2, 0.1, 0.05, 0.025])
+    eh = []
+    for h in hs:
+        xy = np.vstack([[0.0, 0.0], h * pattern])
+        z = np.exp(xy[:, 0] / 2) * np.cos(0.7 * xy[:, 1]) - 1 + 0.3 * xy[:, 0] * xy[:, 1]
+        res = differential_quantities(np.c_[xy, z], k=len(xy) - 1, order=order,
+                                      interpolate=True, orient="none")
+        eh.append(abs(abs(res.mean_curvature[0]) - abs(h_true)))
+    assert np.polyfit(np.log(hs), np.log(eh), 1)[0] > order - 1 - 0.3
+
+
+def test_interpolate_validator():
+    with pytest.raises(TypeError, match="interpolate"):
+        differential_quantities(sy.sphere(50).points, interpolate=1)

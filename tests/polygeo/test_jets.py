@@ -452,3 +452,59 @@ def test_explicit_scale_does_not_change_coefficients(gen):
     b = jets.fit(uv, z, 3, scale=torch.tensor([0.5, 2.0, 7.0], dtype=torch.float64))
     torch.testing.assert_close(a.coeffs, b.coeffs, rtol=1e-8, atol=1e-10)
     torch.testing.assert_close(b.scale, torch.tensor([0.5, 2.0, 7.0], dtype=torch.float64))
+
+
+# ---------------------------------------------------------------- interpolation variant
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("order", [1, 2, 4])
+def test_interpolating_fit_matches_constrained_lstsq(gen, backend, order):
+    B, K = 6, 30
+    uv = _disc(gen, B, K, radius=0.4)
+    z = torch.randn(B, K, generator=gen, dtype=torch.float64)
+    w = torch.rand(B, K, generator=gen, dtype=torch.float64) + 0.1
+    f = jets.fit(uv, z, order, weights=w, backend=backend, interpolate=True)
+    assert (f.status == 0).all()
+    for b in range(B):
+        # independent reference: weighted least squares without the constant column
+        A = np.stack([uv[b, :, 0].numpy() ** p * uv[b, :, 1].numpy() ** q
+                      for p, q in jets.exponents(order).tolist()[1:]], 1)
+        sw = np.sqrt(w[b].numpy())
+        ref = np.linalg.lstsq(A * sw[:, None], z[b].numpy() * sw, rcond=None)[0]
+        assert abs(f.coeffs[b, 0].item()) < 1e-12
+        np.testing.assert_allclose(f.coeffs[b, 1:].numpy(), ref, rtol=1e-9, atol=1e-11)
+        r = z[b].numpy() - A @ ref
+        rms = np.sqrt((w[b].numpy() * r * r).sum() / w[b].numpy().sum())
+        np.testing.assert_allclose(f.residual[b].item(), rms, rtol=1e-9)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_interpolating_fit_exact_and_fallback(gen, backend):
+    # an exact jet through the origin is recovered; an offset one is not interpolated away
+    c = torch.randn(4, jets.n_coeffs(3), generator=gen, dtype=torch.float64)
+    c[:, 0] = 0.0
+    uv = _disc(gen, 4, 40)
+    f = jets.fit(uv, _poly(c, uv), 3, backend=backend, interpolate=True)
+    torch.testing.assert_close(f.coeffs, c, rtol=1e-9, atol=1e-10)
+    # a single scan line (order 2 singular) falls back with the constraint kept
+    u = torch.linspace(-1, 1, 12, dtype=torch.float64)
+    uvl = torch.stack([u, torch.zeros_like(u)], -1)[None]
+    zl = (0.5 + 0.3 * u)[None]
+    g = jets.fit(uvl, zl, 2, backend=backend, interpolate=True)
+    assert int(g.status[0]) in (int(Status.ORDER_REDUCED), int(Status.DEGENERATE))
+    assert g.coeffs[0, 0].item() == pytest.approx(0.0, abs=1e-12)
+    assert torch.isfinite(g.coeffs).all()
+
+
+def test_interpolating_fit_gradcheck(gen):
+    uv = _disc(gen, 2, 12, radius=0.5).requires_grad_()
+    z = torch.randn(2, 12, generator=gen, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(
+        lambda a, b: jets.fit(a, b, 2, backend="torch", interpolate=True).coeffs, (uv, z)
+    )
+
+
+def test_interpolate_validator():
+    with pytest.raises(TypeError, match="interpolate"):
+        jets.fit(torch.zeros(1, 6, 2), torch.zeros(1, 6), 2, interpolate="yes")
