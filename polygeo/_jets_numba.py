@@ -17,7 +17,7 @@ import torch
 
 from .status import Status
 
-__all__ = ["fit_numba"]
+__all__ = ["fit_numba", "fit_item", "fit_scratch"]
 
 _OK = int(Status.OK)
 _TOO_FEW = int(Status.TOO_FEW_POINTS)
@@ -308,6 +308,137 @@ def _residual2(uv, z, w, has_w, ok, b, K, ih, x, m):
     return sr, sw
 
 
+@nb.njit(cache=True)
+def fit_scratch(order, K):
+    """Per-thread work arrays of :func:`fit_item` for jets of ``order`` and ``K`` samples."""
+    M = _ncoef(order)
+    n2 = 2 * order
+    return (np.empty((n2 + 1, n2 + 1)), np.empty(M), np.empty(n2 + 1), np.empty(n2 + 1),
+            np.empty((M, M)), np.empty((M, M)), np.empty((M, M)), np.empty(M), np.empty(M),
+            np.empty(M), np.empty(M), np.empty(M), np.empty(K, dtype=np.bool_))
+
+
+@nb.njit(cache=True, inline="always")
+def fit_item(uv, z, w, has_w, mask, has_mask, b, h_given, order, fallback, max_cond,
+             refine_above, interp, ep, eq, scratch, coeffs, ob):
+    """Fit one item ``b`` of ``uv (B, K, 2)``, ``z (B, K)``; coefficients into ``coeffs[ob]``.
+
+    ``h_given > 0`` is the preconditioning scale, else the largest ``|uv|``. Returns
+    ``(fitted order, status, cond of the requested order, rms residual, h, count)``.
+    """
+    mom, rhs, pu, pv, N, L, Linv, D, Ld, x, g, y, ok = scratch
+    K = uv.shape[1]
+    M = _ncoef(order)
+    n2 = 2 * order
+    # validity, count and scale
+    cnt = 0
+    hmax = 0.0
+    for k in range(K):
+        vk = _is_valid(uv, z, w, has_w, mask, has_mask, b, k)
+        ok[k] = vk
+        if vk:
+            cnt += 1
+            r2 = uv[b, k, 0] * uv[b, k, 0] + uv[b, k, 1] * uv[b, k, 1]
+            if r2 > hmax:
+                hmax = r2
+    if h_given > 0.0:
+        h = h_given
+    else:
+        h = math.sqrt(hmax) if hmax > 0.0 else 1.0
+    ih = 1.0 / h
+    # weighted moments of the preconditioned parameters
+    if order == 2:
+        _moments2(uv, z, w, has_w, ok, b, K, ih, mom, rhs)
+    elif order == 1:
+        _moments1(uv, z, w, has_w, ok, b, K, ih, mom, rhs)
+    else:
+        _moments(uv, z, w, has_w, ok, b, K, ih, mom, rhs, pu, pv, n2, M, ep, eq)
+    # solve, falling back to lower orders
+    o = order
+    st = _OK
+    creq = math.inf
+    m = 0
+    while True:
+        if o == 0:
+            x[0] = rhs[0] / mom[0, 0] if mom[0, 0] > 0.0 and not interp else 0.0
+            m = 1
+            st = _TOO_FEW if cnt < 3 else _DEGENERATE
+            break
+        m = _ncoef(o)
+        success = False
+        cc = math.inf
+        if cnt >= m:
+            cc = _factor(mom, ep, eq, m, N, D, L, Ld, Linv)
+            success = cc <= max_cond
+        if o == order:
+            creq = cc
+        if success:
+            for j in range(m):
+                g[j] = D[j] * rhs[j]
+            _solve(L, Ld, m, g, y)
+            for j in range(m):
+                x[j] = D[j] * y[j]
+            if cc > refine_above:
+                for j in range(m):
+                    g[j] = 0.0
+                for k in range(K):
+                    if not ok[k]:
+                        continue
+                    su = uv[b, k, 0] * ih
+                    sv = uv[b, k, 1] * ih
+                    pu[0] = 1.0
+                    pv[0] = 1.0
+                    for p in range(1, o + 1):
+                        pu[p] = pu[p - 1] * su
+                        pv[p] = pv[p - 1] * sv
+                    r = z[b, k]
+                    for j in range(m):
+                        r -= x[j] * pu[ep[j]] * pv[eq[j]]
+                    if has_w:
+                        r *= w[b, k]
+                    for j in range(m):
+                        g[j] += r * pu[ep[j]] * pv[eq[j]]
+                for j in range(m):
+                    g[j] *= D[j]
+                _solve(L, Ld, m, g, y)
+                for j in range(m):
+                    x[j] += D[j] * y[j]
+            if interp:
+                # constrained to x0 = 0: x - G e0 x0 / G00, G = D N^-1 D
+                for j in range(m):
+                    g[j] = 0.0
+                g[0] = D[0]
+                _solve(L, Ld, m, g, y)
+                f = x[0] / (D[0] * y[0])
+                for j in range(m):
+                    x[j] -= D[j] * y[j] * f
+                x[0] = 0.0
+            st = _OK if o == order else _REDUCED
+            break
+        if not fallback:
+            for j in range(M):
+                x[j] = 0.0
+            m = M
+            st = _TOO_FEW if cnt < M else _ILL
+            break
+        o -= 1
+    # residual of the final fit
+    if m <= 6:
+        sr, sw = _residual2(uv, z, w, has_w, ok, b, K, ih, x, m)
+    else:
+        sr, sw = _residual(uv, z, w, has_w, ok, b, K, ih, x, m, o, pu, pv, ep, eq)
+    # unscale and store
+    pu[0] = 1.0
+    for p in range(1, order + 1):
+        pu[p] = pu[p - 1] * ih
+    for j in range(M):
+        if j < m:
+            coeffs[ob, j] = x[j] * pu[ep[j] + eq[j]]
+        else:
+            coeffs[ob, j] = 0.0
+    return o, st, creq, (math.sqrt(sr / sw) if sw > 0.0 else 0.0), h, cnt
+
+
 @nb.njit(cache=True, parallel=True)
 def _fit_kernel(uv, z, w, has_w, mask, has_mask, scale, has_scale, order, fallback, max_cond,
                 refine_above, interp, ep, eq, coeffs, fitted, status, cond, resid, hout, count,
@@ -315,133 +446,18 @@ def _fit_kernel(uv, z, w, has_w, mask, has_mask, scale, has_scale, order, fallba
     B = uv.shape[0]
     K = uv.shape[1]
     M = _ncoef(order)
-    n2 = 2 * order
     nchunks = (B + _CHUNK - 1) // _CHUNK
     for c in nb.prange(nchunks):
-        mom = np.empty((n2 + 1, n2 + 1))
-        rhs = np.empty(M)
-        pu = np.empty(n2 + 1)
-        pv = np.empty(n2 + 1)
-        N = np.empty((M, M))
-        L = np.empty((M, M))
-        Linv = np.empty((M, M))
-        D = np.empty(M)
-        Ld = np.empty(M)
-        x = np.empty(M)
-        g = np.empty(M)
-        y = np.empty(M)
-        ok = np.empty(K, dtype=np.bool_)
+        scratch = fit_scratch(order, K)
         for b in range(c * _CHUNK, min(B, (c + 1) * _CHUNK)):
-            # validity, count and scale
-            cnt = 0
-            hmax = 0.0
-            for k in range(K):
-                vk = _is_valid(uv, z, w, has_w, mask, has_mask, b, k)
-                ok[k] = vk
-                if vk:
-                    cnt += 1
-                    r2 = uv[b, k, 0] * uv[b, k, 0] + uv[b, k, 1] * uv[b, k, 1]
-                    if r2 > hmax:
-                        hmax = r2
-            if has_scale:
-                h = scale[b]
-            else:
-                h = math.sqrt(hmax) if hmax > 0.0 else 1.0
-            ih = 1.0 / h
-            # weighted moments of the preconditioned parameters
-            if order == 2:
-                _moments2(uv, z, w, has_w, ok, b, K, ih, mom, rhs)
-            elif order == 1:
-                _moments1(uv, z, w, has_w, ok, b, K, ih, mom, rhs)
-            else:
-                _moments(uv, z, w, has_w, ok, b, K, ih, mom, rhs, pu, pv, n2, M, ep, eq)
-            # solve, falling back to lower orders
-            o = order
-            st = _OK
-            creq = math.inf
-            m = 0
-            while True:
-                if o == 0:
-                    x[0] = rhs[0] / mom[0, 0] if mom[0, 0] > 0.0 and not interp else 0.0
-                    m = 1
-                    st = _TOO_FEW if cnt < 3 else _DEGENERATE
-                    break
-                m = _ncoef(o)
-                success = False
-                cc = math.inf
-                if cnt >= m:
-                    cc = _factor(mom, ep, eq, m, N, D, L, Ld, Linv)
-                    success = cc <= max_cond
-                if o == order:
-                    creq = cc
-                if success:
-                    for j in range(m):
-                        g[j] = D[j] * rhs[j]
-                    _solve(L, Ld, m, g, y)
-                    for j in range(m):
-                        x[j] = D[j] * y[j]
-                    if cc > refine_above:
-                        for j in range(m):
-                            g[j] = 0.0
-                        for k in range(K):
-                            if not ok[k]:
-                                continue
-                            su = uv[b, k, 0] * ih
-                            sv = uv[b, k, 1] * ih
-                            pu[0] = 1.0
-                            pv[0] = 1.0
-                            for p in range(1, o + 1):
-                                pu[p] = pu[p - 1] * su
-                                pv[p] = pv[p - 1] * sv
-                            r = z[b, k]
-                            for j in range(m):
-                                r -= x[j] * pu[ep[j]] * pv[eq[j]]
-                            if has_w:
-                                r *= w[b, k]
-                            for j in range(m):
-                                g[j] += r * pu[ep[j]] * pv[eq[j]]
-                        for j in range(m):
-                            g[j] *= D[j]
-                        _solve(L, Ld, m, g, y)
-                        for j in range(m):
-                            x[j] += D[j] * y[j]
-                    if interp:
-                        # constrained to x0 = 0: x - G e0 x0 / G00, G = D N^-1 D
-                        for j in range(m):
-                            g[j] = 0.0
-                        g[0] = D[0]
-                        _solve(L, Ld, m, g, y)
-                        f = x[0] / (D[0] * y[0])
-                        for j in range(m):
-                            x[j] -= D[j] * y[j] * f
-                        x[0] = 0.0
-                    st = _OK if o == order else _REDUCED
-                    break
-                if not fallback:
-                    for j in range(M):
-                        x[j] = 0.0
-                    m = M
-                    st = _TOO_FEW if cnt < M else _ILL
-                    break
-                o -= 1
-            # residual of the final fit
-            if m <= 6:
-                sr, sw = _residual2(uv, z, w, has_w, ok, b, K, ih, x, m)
-            else:
-                sr, sw = _residual(uv, z, w, has_w, ok, b, K, ih, x, m, o, pu, pv, ep, eq)
-            resid[b] = math.sqrt(sr / sw) if sw > 0.0 else 0.0
-            # unscale and store
-            pu[0] = 1.0
-            for p in range(1, order + 1):
-                pu[p] = pu[p - 1] * ih
-            for j in range(M):
-                if j < m:
-                    coeffs[b, j] = x[j] * pu[ep[j] + eq[j]]
-                else:
-                    coeffs[b, j] = 0.0
+            hg = scale[b] if has_scale else 0.0
+            o, st, creq, rs, h, cnt = fit_item(uv, z, w, has_w, mask, has_mask, b, hg, order,
+                                               fallback, max_cond, refine_above, interp, ep,
+                                               eq, scratch, coeffs, b)
             fitted[b] = o
             status[b] = st
             cond[b] = creq
+            resid[b] = rs
             hout[b] = h
             count[b] = cnt
             rank[b] = M if st == _OK else -1  # filled in by the caller

@@ -48,6 +48,9 @@ import numpy as np
 import torch
 
 from . import jets
+from ._diffgeo_numba import jet_geometry, origin_geometry
+from ._frames_numba import height_frame, height_frames_par, height_frames_ser
+from ._jets_numba import fit_item, fit_scratch
 from ._validate import as_tensor, check_choice, check_int, check_positive, check_shape
 from .neighbors import PointIndex, mesh_k_ring
 from .status import Status
@@ -148,249 +151,58 @@ def _np(x: Any) -> Any:
 
 # ----------------------------------------------------------------------------- kernels
 
+# The per-point pieces live with their concepts: PCA height frames in polygeo._frames_numba,
+# the jet fit in polygeo._jets_numba, the geometry at the jet's origin in
+# polygeo._diffgeo_numba. The common case (one k, one order) runs them fused, item by item,
+# in one parallel loop whose work arrays stay in cache.
 
-@nb.njit(cache=True, inline="always")
-def _jacobi3(a, v):
-    """Eigen-decompose the symmetric 3x3 ``a`` in place (cyclic Jacobi); columns of ``v``."""
-    for r in range(3):
-        for c in range(3):
-            v[r, c] = 1.0 if r == c else 0.0
-    for _sweep in range(30):
-        off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
-        diag = a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]
-        if off <= 1e-34 * diag or off == 0.0:
-            break
-        for p in range(2):
-            for q in range(p + 1, 3):
-                apq = a[p, q]
-                if apq == 0.0:
-                    continue
-                theta = (a[q, q] - a[p, p]) / (2.0 * apq)
-                t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
-                if theta < 0.0:
-                    t = -t
-                c = 1.0 / math.sqrt(t * t + 1.0)
-                s = t * c
-                for r in range(3):
-                    arp = a[r, p]
-                    arq = a[r, q]
-                    a[r, p] = c * arp - s * arq
-                    a[r, q] = s * arp + c * arq
-                for r in range(3):
-                    apr = a[p, r]
-                    aqr = a[q, r]
-                    a[p, r] = c * apr - s * aqr
-                    a[q, r] = s * apr + c * aqr
-                for r in range(3):
-                    vrp = v[r, p]
-                    vrq = v[r, q]
-                    v[r, p] = c * vrp - s * vrq
-                    v[r, q] = s * vrp + c * vrq
+_FUSED_CHUNK = 256
 
 
-@nb.njit(cache=True, inline="always")
-def _neg_largest(x, y, z):
-    """Whether the largest-magnitude component (first on ties) is negative."""
-    ax, ay, az = abs(x), abs(y), abs(z)
-    if ax >= ay and ax >= az:
-        return x < 0.0
-    if ay >= az:
-        return y < 0.0
-    return z < 0.0
-
-
-def _frames_py(P, qidx, nbr, dist, kuse, uv, z, valid, R, count, radius, work):
-    """Local PCA frames and height coordinates of each query's neighbourhood.
-
-    P (N,3) f64 points; qidx (Q,) query point indices; nbr/dist (Q,K) neighbours (nearest
-    first, -1 padding); kuse: use the first kuse columns. Outputs: uv (Q,K,2), z (Q,K), valid
-    (Q,K), R (Q,3,3), count (Q,), radius (Q,) RMS distance of the used points to the query;
-    work (Q,3,3) scratch space.
-    """
+def _fused_py(P, qsrc, qdst, nbr, dist, kuse, order, gaussian, max_cond, interp, ep, eq,
+              normal, d1, d2, kk, status, fitted, count, resid, frame, coeffs):
+    """Frames -> fit -> origin geometry of each query ``i``, results into row ``qdst[i]``."""
     Q, K = nbr.shape
-    for i in nb.prange(Q):
-        q = qidx[i]
-        px, py, pz = P[q, 0], P[q, 1], P[q, 2]
-        cnt = 0
-        cx = 0.0
-        cy = 0.0
-        cz = 0.0
-        rr = 0.0
-        for j in range(K):
-            idx = nbr[i, j]
-            ok = idx >= 0 and j < kuse and math.isfinite(px + py + pz)
-            dx = 0.0
-            dy = 0.0
-            dz = 0.0
-            if ok:
-                dx = P[idx, 0] - px
-                dy = P[idx, 1] - py
-                dz = P[idx, 2] - pz
-                if idx != q and dx == 0.0 and dy == 0.0 and dz == 0.0:
-                    ok = False  # a copy of the query point
-                else:
-                    l = j - 1
-                    while l >= 0 and dist[i, l] == dist[i, j]:
-                        same = uv[i, l, 0] == dx and uv[i, l, 1] == dy and z[i, l] == dz
-                        if valid[i, l] and same:
-                            ok = False  # a copy of an earlier neighbour
-                            break
-                        l -= 1
-            valid[i, j] = ok
-            uv[i, j, 0] = dx
-            uv[i, j, 1] = dy
-            z[i, j] = dz
-            if ok:
-                cnt += 1
-                cx += dx
-                cy += dy
-                cz += dz
-                rr += dx * dx + dy * dy + dz * dz
-        count[i] = cnt
-        radius[i] = math.sqrt(rr / cnt) if cnt > 0 else 0.0
-        a = work[i]  # scratch rows (no allocation per point)
-        v = R[i]
-        for r in range(3):
-            for c in range(3):
-                a[r, c] = 0.0
-        if cnt > 0:
-            cx /= cnt
-            cy /= cnt
-            cz /= cnt
-            for j in range(K):
-                if valid[i, j]:
-                    ex = uv[i, j, 0] - cx
-                    ey = uv[i, j, 1] - cy
-                    ez = z[i, j] - cz
-                    a[0, 0] += ex * ex
-                    a[0, 1] += ex * ey
-                    a[0, 2] += ex * ez
-                    a[1, 1] += ey * ey
-                    a[1, 2] += ey * ez
-                    a[2, 2] += ez * ez
-        tr = a[0, 0] + a[1, 1] + a[2, 2]
-        if tr > 0.0 and math.isfinite(tr):
-            a[1, 0] = a[0, 1]
-            a[2, 0] = a[0, 2]
-            a[2, 1] = a[1, 2]
+    M = coeffs.shape[1]
+    nchunks = (Q + _FUSED_CHUNK - 1) // _FUSED_CHUNK
+    for c in nb.prange(nchunks):
+        uv = np.empty((_FUSED_CHUNK, K, 2))
+        z = np.empty((_FUSED_CHUNK, K))
+        valid = np.empty((_FUSED_CHUNK, K), dtype=np.bool_)
+        w = np.ones((_FUSED_CHUNK, K) if gaussian else (1, 1))
+        Rl = np.empty((_FUSED_CHUNK, 3, 3))
+        lam = np.empty((_FUSED_CHUNK, 3))
+        cf = np.empty((_FUSED_CHUNK, M))
+        a = np.empty((3, 3))
+        v = np.empty((3, 3))
+        scratch = fit_scratch(order, K)
+        for i in range(c * _FUSED_CHUNK, min(Q, (c + 1) * _FUSED_CHUNK)):
+            b = i - c * _FUSED_CHUNK
+            o = qdst[i]
+            _, rad = height_frame(P, qsrc[i], nbr[i], dist[i], kuse, uv, z, valid, b, Rl, b,
+                                  lam, a, v)
+            if gaussian:
+                h2 = max(rad * rad, 1e-300)
+                for j in range(K):
+                    d2_ = uv[b, j, 0] ** 2 + uv[b, j, 1] ** 2 + z[b, j] ** 2
+                    w[b, j] = math.exp(-d2_ / h2) if valid[b, j] else 0.0
+            fo, st, _, rs, _, cnt = fit_item(uv, z, w, gaussian, valid, True, b, 0.0, order,
+                                             True, max_cond, 100.0, interp, ep, eq, scratch,
+                                             cf, b)
+            origin_geometry(cf, b, Rl, b, normal, d1, d2, kk, o)
+            for j in range(M):
+                coeffs[o, j] = cf[b, j]
             for r in range(3):
-                for c in range(3):
-                    a[r, c] /= tr
-            _jacobi3(a, v)
-            # order eigenpairs: e1 largest, e3 smallest
-            lo = 0
-            hi = 0
-            for c in range(1, 3):
-                if a[c, c] < a[lo, lo]:
-                    lo = c
-                if a[c, c] > a[hi, hi]:
-                    hi = c
-            if lo == hi:
-                hi = (lo + 1) % 3
-            e3x, e3y, e3z = v[0, lo], v[1, lo], v[2, lo]
-            e1x, e1y, e1z = v[0, hi], v[1, hi], v[2, hi]
-        else:
-            e1x, e1y, e1z = 1.0, 0.0, 0.0
-            e3x, e3y, e3z = 0.0, 0.0, 1.0
-        # deterministic signs (as polygeo.frames.pca_frames): largest component positive
-        if _neg_largest(e1x, e1y, e1z):
-            e1x, e1y, e1z = -e1x, -e1y, -e1z
-        if _neg_largest(e3x, e3y, e3z):
-            e3x, e3y, e3z = -e3x, -e3y, -e3z
-        e2x = e3y * e1z - e3z * e1y
-        e2y = e3z * e1x - e3x * e1z
-        e2z = e3x * e1y - e3y * e1x
-        R[i, 0, 0] = e1x
-        R[i, 1, 0] = e1y
-        R[i, 2, 0] = e1z
-        R[i, 0, 1] = e2x
-        R[i, 1, 1] = e2y
-        R[i, 2, 1] = e2z
-        R[i, 0, 2] = e3x
-        R[i, 1, 2] = e3y
-        R[i, 2, 2] = e3z
-        for j in range(K):
-            if valid[i, j]:
-                dx = uv[i, j, 0]
-                dy = uv[i, j, 1]
-                dz = z[i, j]
-                uv[i, j, 0] = dx * e1x + dy * e1y + dz * e1z
-                uv[i, j, 1] = dx * e2x + dy * e2y + dz * e2z
-                z[i, j] = dx * e3x + dy * e3y + dz * e3z
-            else:
-                uv[i, j, 0] = 0.0
-                uv[i, j, 1] = 0.0
-                z[i, j] = 0.0
+                for cc in range(3):
+                    frame[o, r, cc] = Rl[b, r, cc]
+            status[o] = st
+            fitted[o] = fo
+            count[o] = cnt
+            resid[o] = rs
 
 
-def _origin_geometry_py(coef, R, normal, d1, d2, kk):
-    """Normal, principal directions and curvatures of jets at (u, v) = 0, in world axes.
-
-    coef (Q,M) jets coefficients (M >= 3); R (Q,3,3) local-to-world rotations. Outputs
-    normal/d1/d2 (Q,3), kk (Q,4): k1, k2, H, K. The patch x(u, v) = (u, v, f(u, v)) at the
-    origin, with the same closed forms and conventions as :func:`polygeo.diffgeo.from_derivatives`
-    (normal on the +z side; shape operator diagonalised in t1 = x_u/|x_u|, t2 = n x t1; d1 at
-    angle atan2(2b, a - c)/2 from t1; d1 = t1 at umbilics).
-    """
-    Q, M = coef.shape
-    for i in nb.prange(Q):
-        a10 = coef[i, 1]
-        a01 = coef[i, 2]
-        a20 = coef[i, 3] if M > 3 else 0.0
-        a11 = coef[i, 4] if M > 4 else 0.0
-        a02 = coef[i, 5] if M > 5 else 0.0
-        # x_u = (1, 0, a10), x_v = (0, 1, a01), x_uu = (0, 0, 2 a20), ...
-        w = math.sqrt(1.0 + a10 * a10 + a01 * a01)
-        nx, ny, nz = -a10 / w, -a01 / w, 1.0 / w
-        L = 2.0 * a20 / w
-        Mm = a11 / w
-        Nn = 2.0 * a02 / w
-        su = math.sqrt(1.0 + a10 * a10)
-        t1x, t1y, t1z = 1.0 / su, 0.0, a10 / su
-        t2x = ny * t1z - nz * t1y
-        t2y = nz * t1x - nx * t1z
-        t2z = nx * t1y - ny * t1x
-        c11 = su
-        c12 = a10 * a01 / su  # x_v . t1
-        c22 = t2y + a01 * t2z  # x_v . t2
-        i11 = 1.0 / c11
-        i12 = -c12 / (c11 * c22)
-        i22 = 1.0 / c22
-        a = i11 * i11 * L
-        b = i11 * (i12 * L + i22 * Mm)
-        c = i12 * i12 * L + 2.0 * i12 * i22 * Mm + i22 * i22 * Nn
-        m = 0.5 * (a + c)
-        hd = 0.5 * (a - c)
-        r2 = hd * hd + b * b
-        r = math.sqrt(r2)
-        if r2 > 1e-30 * max(m * m, 1e-300):
-            theta = 0.5 * math.atan2(b, hd)
-        else:
-            theta = 0.0
-        ct = math.cos(theta)
-        st = math.sin(theta)
-        ex = ct * t1x + st * t2x
-        ey = ct * t1y + st * t2y
-        ez = ct * t1z + st * t2z
-        fx = ny * ez - nz * ey
-        fy = nz * ex - nx * ez
-        fz = nx * ey - ny * ex
-        for rr in range(3):
-            normal[i, rr] = R[i, rr, 0] * nx + R[i, rr, 1] * ny + R[i, rr, 2] * nz
-            d1[i, rr] = R[i, rr, 0] * ex + R[i, rr, 1] * ey + R[i, rr, 2] * ez
-            d2[i, rr] = R[i, rr, 0] * fx + R[i, rr, 1] * fy + R[i, rr, 2] * fz
-        kk[i, 0] = m + r
-        kk[i, 1] = m - r
-        kk[i, 2] = m
-        kk[i, 3] = a * c - b * b
-
-
-# Parallel variants for large chunks; serial ones avoid the thread-pool start-up cost (which
-# dominates on small chunks, especially on a busy machine).
-_frames_par = nb.njit(cache=True, parallel=True)(_frames_py)
-_frames_ser = nb.njit(cache=True)(_frames_py)
-_origin_geometry_par = nb.njit(cache=True, parallel=True)(_origin_geometry_py)
-_origin_geometry_ser = nb.njit(cache=True)(_origin_geometry_py)
+_fused_par = nb.njit(cache=True, parallel=True)(_fused_py)
+_fused_ser = nb.njit(cache=True)(_fused_py)
 _PARALLEL_MIN = 4096
 
 
@@ -408,13 +220,10 @@ class _Local:
         self.R = np.empty((Q, 3, 3))
         self.count = np.zeros(Q, dtype=np.int64)
         self.radius = np.zeros(Q)
-        work = np.empty((Q, 3, 3))
         if Q:
-            kernel = _frames_par if Q >= _PARALLEL_MIN else _frames_ser
-            kernel(
-                P, qidx, nbr, dist, int(kuse), self.uv, self.z, self.valid, self.R, self.count,
-                self.radius, work,
-            )
+            kernel = height_frames_par if Q >= _PARALLEL_MIN else height_frames_ser
+            kernel(P, qidx, nbr, dist, int(kuse), self.uv, self.z, self.valid, self.R,
+                   self.count, self.radius)
 
 
 def _fit(local: _Local, order: int, weights: np.ndarray | None, max_cond: float,
@@ -432,18 +241,7 @@ def _fit(local: _Local, order: int, weights: np.ndarray | None, max_cond: float,
 
 
 def _geometry(coeffs: np.ndarray, R: np.ndarray) -> dict[str, np.ndarray]:
-    Q = coeffs.shape[0]
-    normal = np.empty((Q, 3))
-    d1 = np.empty((Q, 3))
-    d2 = np.empty((Q, 3))
-    kk = np.empty((Q, 4))
-    if Q:
-        kernel = _origin_geometry_par if Q >= _PARALLEL_MIN else _origin_geometry_ser
-        kernel(np.ascontiguousarray(coeffs), R, normal, d1, d2, kk)
-    return {
-        "normals": normal, "d1": d1, "d2": d2,
-        "k1": kk[:, 0], "k2": kk[:, 1], "mean_curvature": kk[:, 2], "gaussian_curvature": kk[:, 3],
-    }
+    return jet_geometry(coeffs, R)
 
 
 def _gaussian_weights(local: _Local) -> np.ndarray:
@@ -748,10 +546,11 @@ def differential_quantities(
     kq = min(kmax, max(n_fin, 1))
     k_graph = min(6, kq)
     M = jets.n_coeffs(max_order)
+    kk_all = np.full((n, 4), np.nan)  # k1, k2, H, K (the fused kernel's layout)
     res = {
         "normals": np.full((n, 3), np.nan), "d1": np.full((n, 3), np.nan),
-        "d2": np.full((n, 3), np.nan), "k1": np.full(n, np.nan), "k2": np.full(n, np.nan),
-        "mean_curvature": np.full(n, np.nan), "gaussian_curvature": np.full(n, np.nan),
+        "d2": np.full((n, 3), np.nan), "k1": kk_all[:, 0], "k2": kk_all[:, 1],
+        "mean_curvature": kk_all[:, 2], "gaussian_curvature": kk_all[:, 3],
     }
     status = np.full(n, int(Status.NONFINITE_INPUT), dtype=np.int64)
     fitted_order = np.zeros(n, dtype=np.int64)
@@ -809,6 +608,18 @@ def differential_quantities(
         sizes = [c for c in kc if c <= nbr.shape[1]] or [nbr.shape[1]]
         if auto_k and radius is None and ring is None:
             sizes = sorted({min(c, kq) for c in kc})
+        if len(sizes) == 1 and len(orders) == 1:
+            # the common case, fused: frames -> fit -> geometry straight into the outputs
+            o_ = orders[0]
+            e = jets._exponents_np(o_)
+            kernel = _fused_par if q.size >= _PARALLEL_MIN else _fused_ser
+            kernel(P, np.ascontiguousarray(rep[q]), np.ascontiguousarray(q),
+                   np.ascontiguousarray(nbr), np.ascontiguousarray(dist), int(sizes[0]), o_,
+                   weights == "gaussian", float(max_cond or MAX_COND[o_]), interpolate,
+                   np.ascontiguousarray(e[:, 0]), np.ascontiguousarray(e[:, 1]),
+                   res["normals"], res["d1"], res["d2"], kk_all, status, fitted_order, n_nb,
+                   resid, frame, coeffs)
+            continue
         per_size = []
         for size in sizes:
             local = _Local(P, rep[q], nbr, dist, size)
@@ -885,10 +696,12 @@ def differential_quantities(
         extra = dict(frame=frame_t.to(out_dtype), coeffs=coeffs_t.to(out_dtype),
                      residual=resid_t.to(out_dtype))
     else:
-        res = _apply_sign_np(res, sign)
-        frame = _flip_frame_np(frame, sign)
-        coeffs = coeffs * _coeff_signs(torch.from_numpy(sign), max_order).numpy()
-        dq = {k_: torch.from_numpy(v).to(out_dtype) for k_, v in res.items()}
+        if (sign < 0).any():
+            res = _apply_sign_np(res, sign)
+            frame = _flip_frame_np(frame, sign)
+            coeffs = coeffs * _coeff_signs(torch.from_numpy(sign), max_order).numpy()
+        dq = {k_: torch.from_numpy(np.ascontiguousarray(v)).to(out_dtype)
+              for k_, v in res.items()}
         extra = dict(
             frame=torch.from_numpy(frame).to(out_dtype),
             coeffs=torch.from_numpy(coeffs).to(out_dtype),
