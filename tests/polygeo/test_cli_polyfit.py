@@ -26,12 +26,13 @@ def test_polyfit_command_writes_patches_mesh_and_summary(tmp_path, sheet_ply, ca
     rc = main([
         "polyfit", str(path), "-o", str(out), "--patches", "12", "--order", "3",
         "--resample", "1", "--mesh-out", str(mesh_out), "--chamfer-samples", "2000",
+        "--chamfer-dense", "20000",
         "--json", str(js),
     ])
     assert rc == 0
     text = capsys.readouterr().out
     for key in ("patches", "height RMSE", "normal error", "boundary gap", "foldover share",
-                "Chamfer x 1e3"):
+                "Chamfer x 1e3", "surface", "sampling floor", "dense points"):
         assert key in text
     ps = PatchSet.load(out)
     assert ps.n_patches >= 8 and ps.order == 3
@@ -41,6 +42,9 @@ def test_polyfit_command_writes_patches_mesh_and_summary(tmp_path, sheet_ply, ca
     summary = json.loads(js.read_text())
     assert summary["patches"] == ps.n_patches
     assert summary["chamfer"] is not None and summary["chamfer"] < 1e-3
+    # the dense protocol lowers the point protocol's floor; the surface distance has none
+    assert summary["chamfer_dense_floor"] < 0.8 * summary["chamfer_floor"]
+    assert summary["chamfer_surface"] < summary["chamfer_dense"] < summary["chamfer"]
     # the resampled mesh is what the set evaluates to
     rv, _ = ps.resample(1)
     np.testing.assert_allclose(res.points, rv.numpy(), atol=1e-6)
@@ -86,10 +90,13 @@ def test_train_stn_command(tmp_path, capsys):
     rc = main([
         "train-stn", "--out", str(w), "--checkpoint-dir", str(tmp_path / "ck"), "--steps", "2",
         "--batch-size", "4", "--points", "16", "--mesh-share", "0", "--eval-every", "1",
-        "--quiet", "--threads", "1",
+        "--train-patches", "8", "--val-patches", "4", "--quiet", "--threads", "1",
     ])
     assert rc == 0
     assert w.is_file() and (tmp_path / "ck" / "stn_checkpoint.pt").is_file()
     blob = torch.load(w, weights_only=True)
-    assert blob["meta"]["validation"]["step"] == 2
+    meta = blob["meta"]
+    assert meta["validation"]["step"] in (1, 2) and meta["steps_run"] == 2
+    assert meta["train_cpu_seconds"] > 0 and meta["train_seconds"] > 0
+    assert json.loads(w.with_suffix(".json").read_text()) == meta
     assert "held-out height RMS" in capsys.readouterr().out

@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 import torch
 
+import polygeo.stn as polygeo_stn
 import polygeo.synthetic as syn
 from polygeo.frames import axis_angle_to_matrix, quaternion_to_matrix
 from polygeo.stn import (
@@ -146,7 +147,8 @@ def test_shipped_stn_beats_pca_on_held_out_patches():
 def test_training_is_reproducible_and_resumes(tmp_path):
     cfg = TrainConfig(
         steps=4, batch_size=6, n_points=24, mesh_share=0.0, widths=(8, 16), head=(8,),
-        n_val=8, eval_every=2, checkpoint_every=2, threads=1, lr=1e-2,
+        n_val=8, n_train=32, eval_every=2, checkpoint_every=2, threads=1, lr=1e-2,
+        patience=0,
     )
     full, hist = train_stn(cfg, checkpoint_dir=tmp_path / "a", progress=False)
     assert (tmp_path / "a" / "stn_checkpoint.pt").is_file()
@@ -198,3 +200,67 @@ def test_bad_input(tmp_path):
     torch.save({"a": 1}, tmp_path / "junk.pt")
     with pytest.raises(ValueError, match="STN"):
         load_pretrained(tmp_path / "junk.pt")
+
+
+def _perturbed_net(seed=0, **kw):
+    torch.manual_seed(seed)
+    net = PatchSTN((8, 16), (8,), **kw)
+    with torch.no_grad():
+        net.out.weight.normal_(0, 0.5)
+        net.out.bias.normal_(0, 0.3)
+    return net
+
+
+@pytest.mark.parametrize("output", ["tilt", "quaternion"])
+def test_network_is_equivariant_to_axis_sign_flips(output):
+    # flipping canonical axes (x -> x D) changes nothing for the height residual, so the
+    # refined rotation must follow: Q(x D) = D Q(x) D
+    fp = syn.family_patches(5, 40, seed=4)
+    x = canonicalize(torch.from_numpy(fp.points)).local.float()
+    net = _perturbed_net(output=output)
+    Q = quaternion_to_matrix(net(x).double())
+    for signs in ([-1, 1, 1], [1, -1, -1], [-1, -1, -1]):
+        D = torch.diag(torch.tensor(signs, dtype=torch.float64))
+        Qf = quaternion_to_matrix(net(x * D.diagonal().float()).double())
+        torch.testing.assert_close(Qf, D @ Q @ D, atol=1e-5, rtol=0)
+        r1, _ = height_residual(x.double(), torch.ones(5, 40, dtype=torch.bool), Q, 3)
+        r2, _ = height_residual(x.double() @ D, torch.ones(5, 40, dtype=torch.bool),
+                                D @ Q @ D, 3)
+        torch.testing.assert_close(r1, r2)
+    if output == "tilt":  # no spin about the normal: the rotation vector's z is zero
+        q = net(x)
+        torch.testing.assert_close(q[:, 3], torch.zeros(5))
+        torch.testing.assert_close(q.norm(dim=-1), torch.ones(5))
+
+
+def test_knn_normals_on_plane_and_sphere_ignore_padding():
+    rng = np.random.default_rng(0)
+    uv = rng.uniform(-1, 1, (2, 60, 2))
+    plane = np.concatenate([uv, np.zeros((2, 60, 1))], -1)
+    R = quaternion_to_matrix(torch.tensor([0.9, 0.1, -0.3, 0.2], dtype=torch.float64))
+    x = torch.from_numpy(plane) @ R.T
+    m = torch.ones(2, 60, dtype=torch.bool)
+    m[1, 40:] = False
+    x[1, 40:] = 5.0  # padded garbage
+    n = polygeo_stn.knn_normals(x, m, k=8)
+    expect = R[:, 2] * torch.sign(R[2, 2])
+    torch.testing.assert_close(n[m], expect.expand(int(m.sum()), 3), atol=1e-9, rtol=0)
+    assert (n[~m] == 0).all()
+    s = syn.sphere(400, seed=1)  # unit sphere: normals radial (up to sign)
+    p = torch.from_numpy(s.points)[None]
+    n = polygeo_stn.knn_normals(p, None, k=10)[0]
+    cos = (n * p[0]).sum(-1).abs()
+    assert float(cos.min()) > 0.97
+    assert (n[:, 2] >= 0).all()
+
+
+def test_early_stopping_returns_best_and_stops(tmp_path):
+    cfg = TrainConfig(
+        steps=20, batch_size=4, n_points=16, mesh_share=0.0, widths=(8,), head=(4,),
+        n_val=4, n_train=8, eval_every=2, checkpoint_every=2, threads=1, lr=0.0, patience=2,
+    )
+    net, hist = train_stn(cfg, checkpoint_dir=tmp_path, progress=False)
+    # lr = 0: the first validation stays the best, two more without improvement stop it
+    assert hist["stopped_at"] == 6 and len(hist["loss"]) == 6
+    assert hist["best"]["step"] == 2
+    assert hist["cpu_seconds"] > 0
