@@ -26,6 +26,7 @@ Example
 
 Departures from the thesis (documented where they are set): parameters live in normalised
 units (the patch radius is 1), which is what the thesis' learning rates are applied to;
-``k_mi`` defaults to 10 rather than 0.1 for these units; the soft coverage is remapped before
+``k_mi`` defaults to 10 rather than 0.1 and ``lr_rigid`` to 1e-3 rather than 1e-4 for these
+units (see :class:`sft.optimize.SfTSettings`); the soft coverage is remapped before
 the silhouette and colour terms (see :meth:`sft.losses.ImageTerms.render`).
 """

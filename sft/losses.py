@@ -96,13 +96,19 @@ class ImageTerms:
         Weights of the colour and silhouette terms.
     rgb_kind : {"l1", "l2"}
     sil_kind : {"l2", "l1", "iou"}
+    pyramid : int
+        Coarser image levels added to both terms (0: full resolution only, as in phi-SfT).
+        Level ``l`` compares ``2^l x 2^l`` block means (average pooling) of the render and
+        of the target; the terms are averaged over the ``pyramid + 1`` levels, so the
+        coarse levels give gradients from texture and silhouette a few pixels away (a wider
+        basin for large inter-frame motion) while the fine level keeps the optimum.
     dtype : torch.dtype
         Dtype of the renders.
     """
 
     def __init__(self, sequence, raster: RasterSettings, *, k_rgb: float = 1.0,
                  k_sil: float = 1.0, rgb_kind: str = "l1", sil_kind: str = "l2",
-                 dtype: torch.dtype = torch.float32) -> None:
+                 pyramid: int = 0, dtype: torch.dtype = torch.float32) -> None:
         t = sequence.template
         self.camera = Camera(torch.as_tensor(sequence.K, dtype=dtype), width=sequence.width,
                              height=sequence.height)
@@ -111,6 +117,7 @@ class ImageTerms:
         self._hard = RasterSettings(**{**vars(raster), "hard": True})
         self.k_rgb, self.k_sil = float(k_rgb), float(k_sil)
         self.rgb_kind, self.sil_kind = rgb_kind, sil_kind
+        self.pyramid = int(pyramid)
         self.dtype = dtype
         self.has_masks = sequence.has_masks
         if t.textured:
@@ -174,10 +181,26 @@ class ImageTerms:
             ``(F, H, W)``.
         """
         rgb, alpha = self.render(verts)
-        out = {"rgb": self.k_rgb * rgb_loss(rgb, targets, kind=self.rgb_kind, reduction="none")}
-        if masks is not None and self.k_sil > 0:
-            out["sil"] = self.k_sil * silhouette_loss(alpha, masks, kind=self.sil_kind,
-                                                      reduction="none")
+        has_sil = masks is not None and self.k_sil > 0
+        levels = [(rgb, targets, alpha, masks)]
+        if self.pyramid > 0:
+            chw = (rgb.permute(0, 3, 1, 2), targets.permute(0, 3, 1, 2))
+            for lv in range(1, self.pyramid + 1):
+                k = 2**lv
+                if k > min(rgb.shape[1], rgb.shape[2]):
+                    break
+                r, t = (torch.nn.functional.avg_pool2d(x, k).permute(0, 2, 3, 1) for x in chw)
+                a = m = None
+                if has_sil:
+                    a, m = (torch.nn.functional.avg_pool2d(x[:, None], k)[:, 0]
+                            for x in (alpha, masks))
+                levels.append((r, t, a, m))
+        n = len(levels)
+        out = {"rgb": sum(rgb_loss(r, t, kind=self.rgb_kind, reduction="none")
+                          for r, t, _, _ in levels) * (self.k_rgb / n)}
+        if has_sil:
+            out["sil"] = sum(silhouette_loss(a, m, kind=self.sil_kind, reduction="none")
+                             for _, _, a, m in levels) * (self.k_sil / n)
         return out
 
 
