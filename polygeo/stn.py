@@ -10,10 +10,11 @@ ways, all batched over patches (padded ``(B, P, 3)`` with a mask):
   scale ``s`` = largest distance of a point from the centroid, so that canonical points lie
   in the unit ball;
 * :class:`PatchSTN`: a small PointNet-style network (shared per-point MLP, masked max pool,
-  MLP head) reading the canonical points and returning a unit quaternion ``q`` that refines
-  the PCA rotation, ``R = R_pca Q(q)``; initialised at the identity and trained
-  (:func:`train_stn`) by minimising the height residual of the n-jet fit after the rotation,
-  differentiably through the least-squares solve (thesis §5.5.1);
+  MLP head) reading the canonical points and their k-nearest-neighbour normals, with the
+  PCA axes' arbitrary signs canonicalised, and returning a unit quaternion ``q`` (a tilt of
+  the height axis) that refines the PCA rotation, ``R = R_pca Q(q)``; initialised at the
+  identity and trained (:func:`train_stn`) by minimising the height residual of the n-jet
+  fit after the rotation, differentiably through the least-squares solve (thesis §5.5.1);
 * :func:`optimize_rotations`: per-patch test-time refinement of the same rotation by Adam
   steps on the same residual (no learning), keeping each patch's best iterate, so that it
   never ends worse than where it started.
@@ -278,6 +279,12 @@ def _axis_signs(local: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return torch.where(m3 < 0, -torch.ones_like(m3), torch.ones_like(m3))
 
 
+def _masked_max(h: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Max over valid points ``(B, P, C) -> (B, C)`` (zero for a patch without points)."""
+    g = h.masked_fill(~mask[..., None], -torch.inf).amax(1)
+    return torch.where(torch.isfinite(g), g, torch.zeros_like(g))
+
+
 class PatchSTN(nn.Module):
     """PointNet-style rigid spatial transformer: canonical patch points -> unit quaternion.
 
@@ -313,6 +320,9 @@ class PatchSTN(nn.Module):
         Canonicalise the axis signs by third moments.
     k : int
         Neighbours of the normals.
+    context : bool
+        Two-stage PointNet: the last shared layer reads each point's features together with
+        the max-pooled features of the previous layers (global context).
     """
 
     def __init__(
@@ -324,6 +334,7 @@ class PatchSTN(nn.Module):
         output: str = "tilt",
         canonical_signs: bool = True,
         k: int = 10,
+        context: bool = False,
     ):
         super().__init__()
         from ._validate import check_choice
@@ -332,14 +343,19 @@ class PatchSTN(nn.Module):
         self.output = check_choice(output, "output", STN_OUTPUTS)
         self.canonical_signs = bool(canonical_signs)
         self.k = int(k)
+        self.context = bool(context) and len(widths) >= 2
         self.widths = tuple(int(w) for w in widths)
         self.head_widths = tuple(int(w) for w in head)
         layers: list[nn.Module] = []
         c = 3 if self.features == "xyz" else 6
-        for w in self.widths:
+        first = self.widths[:-1] if self.context else self.widths
+        for w in first:
             layers += [nn.Linear(c, w), nn.ReLU()]
             c = w
         self.point_mlp = nn.Sequential(*layers)
+        if self.context:  # last shared layer sees each point and the pooled first stage
+            self.context_mlp = nn.Sequential(nn.Linear(2 * c, self.widths[-1]), nn.ReLU())
+            c = self.widths[-1]
         hl: list[nn.Module] = []
         for w in self.head_widths:
             hl += [nn.Linear(c, w), nn.ReLU()]
@@ -405,9 +421,10 @@ class PatchSTN(nn.Module):
                 n = feat[..., 3:]
                 feat = torch.cat([feat[..., :3], torch.where(n[..., 2:3] < 0, -n, n)], -1)
         h = self.point_mlp(feat)  # (B, P, C)
-        h = h.masked_fill(~mask[..., None], -torch.inf)
-        g = h.amax(1)  # (B, C)
-        g = torch.where(torch.isfinite(g), g, torch.zeros_like(g))  # a patch with no point
+        if self.context:
+            g = _masked_max(h, mask)
+            h = self.context_mlp(torch.cat([h, g[:, None, :].expand_as(h)], -1))
+        g = _masked_max(h, mask)  # (B, C)
         o = self.out(self.head(g))
         if self.output == "quaternion":
             q = o / o.norm(dim=-1, keepdim=True).clamp_min(1e-12)
@@ -432,6 +449,7 @@ class PatchSTN(nn.Module):
             "output": self.output,
             "canonical_signs": self.canonical_signs,
             "k": self.k,
+            "context": self.context,
         }
 
 
@@ -480,6 +498,7 @@ def load_pretrained(path: str | os.PathLike | None = None) -> PatchSTN:
         output=cfg.get("output", "quaternion"),
         canonical_signs=cfg.get("canonical_signs", False),
         k=cfg.get("k", 10),
+        context=cfg.get("context", False),
     )
     sd = {k: v.float() for k, v in blob["state_dict"].items()}
     net.load_state_dict(sd)
@@ -680,8 +699,8 @@ class TrainConfig:
         Network size (:class:`PatchSTN`).
     features, output : str
         Input and rotation parametrisation of :class:`PatchSTN`.
-    canonical_signs : bool
-        Third-moment sign canonicalisation of :class:`PatchSTN`.
+    canonical_signs, context : bool
+        Third-moment sign canonicalisation and global context of :class:`PatchSTN`.
     seed : int
         Seed of the network initialisation, the cached training set and every batch (batch
         ``i`` is drawn from ``(seed, i)``, so that a resumed run sees the same data).
@@ -717,6 +736,7 @@ class TrainConfig:
     features: str = "normals"
     output: str = "tilt"
     canonical_signs: bool = True
+    context: bool = False
     seed: int = 0
     n_train: int = 16384
     n_val: int = 1024
@@ -984,6 +1004,7 @@ def train_stn(
         features=cfg.features,
         output=cfg.output,
         canonical_signs=cfg.canonical_signs,
+        context=cfg.context,
     )
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     n_steps = max(cfg.steps, 1)

@@ -10,6 +10,7 @@ from polygeo.partition import partition_mesh
 from polygeo.patches import (
     PatchSet,
     chamfer_distance,
+    chamfer_report,
     evaluate_patches,
     patch_geometry,
     subdivide_barycentric,
@@ -337,6 +338,24 @@ def test_chamfer_distance_properties():
     assert bigger > same + 0.5 * 0.05**2
     with pytest.raises(ValueError, match="normalize"):
         chamfer_distance(s.points, s.faces, s.points, s.faces, normalize="box")
+
+
+def test_chamfer_dense_protocol_floor_and_report():
+    # unit sphere, normalised area A = 4 pi: one side's floor is A / (pi n) = 4 / n
+    s = syn.sphere_mesh(4)
+    n, nb = 3000, 30000
+    dense = chamfer_distance(s.points, s.faces, s.points, s.faces, n_samples=n, n_samples_b=nb)
+    expect = 4.0 / n + 4.0 / nb
+    assert 0.8 * expect < dense < 1.2 * expect
+    rep = chamfer_report(s.points, s.faces, 1.02 * s.points, s.faces, n_samples=n, n_dense=nb)
+    # a 2 % larger sphere: continuous Chamfer 2 * 0.02^2 (scaled into the unit ball by 1)
+    assert rep.surface == pytest.approx(2 * 0.02**2, rel=0.1)
+    assert rep.dense_floor < 0.7 * rep.points_floor
+    assert rep.surface < rep.dense < rep.points
+    d = rep.as_dict()
+    assert d["points"] == pytest.approx(1e3 * rep.points) and d["n_dense"] == nb
+    with pytest.raises(ValueError, match="n_samples_b"):
+        chamfer_distance(s.points, s.faces, s.points, s.faces, n_samples_b=0)
 
 
 # ------------------------------------------------------------------ failing inputs

@@ -55,9 +55,13 @@ def test_untrained_network_is_the_identity():
     torch.testing.assert_close(q, torch.tensor([[1.0, 0, 0, 0]]).expand(5, 4))
 
 
-def test_network_batched_equals_single_and_ignores_padding():
+@pytest.mark.parametrize(
+    "kw",
+    [{}, {"context": True}, {"features": "xyz", "output": "quaternion", "canonical_signs": False}],
+)
+def test_network_batched_equals_single_and_ignores_padding(kw):
     torch.manual_seed(0)
-    net = PatchSTN((8, 16), (8,))
+    net = PatchSTN((8, 16), (8,), **kw)
     with torch.no_grad():
         net.out.weight.normal_(0, 0.5)
     x = torch.randn(4, 30, 3)
@@ -132,16 +136,16 @@ def test_shipped_stn_beats_pca_on_held_out_patches():
     Q = stn_rotations(c.local, c.mask)
     r1, _ = height_residual(c.local, c.mask, Q, 4)
     ratio = float(r1.mean() / r0.mean())
-    assert ratio < 0.85, f"stn / pca residual {ratio:.3f}"
+    assert ratio < 0.82, f"stn / pca residual {ratio:.3f}"
     folded = _foldover(c.local, faces) > 0
     rf = float(r1[folded].mean() / r0[folded].mean())
-    assert rf < 0.8, f"on PCA-folded patches: {rf:.3f}"
+    assert rf < 0.76, f"on PCA-folded patches: {rf:.3f}"
     # irregular, noisy samples of the families (the training distribution, other seeds)
     fp = syn.family_patches(400, 128, noise=0.01, seed=HELD_OUT + 2)
     c = canonicalize(torch.from_numpy(fp.points))
     r0, _ = height_residual(c.local, c.mask, None, 4)
     r1, _ = height_residual(c.local, c.mask, stn_rotations(c.local, c.mask), 4)
-    assert float(r1.mean() / r0.mean()) < 0.9
+    assert float(r1.mean() / r0.mean()) < 0.85
 
 
 def test_training_is_reproducible_and_resumes(tmp_path):
