@@ -174,7 +174,7 @@ def _pca_kernel(P, w, has_w, mask, has_mask, center, has_center, ref, has_ref, o
 
 
 @nb.njit(cache=True, inline="always")
-def height_frame(P, q, nbr_row, dist_row, kuse, uv, z, valid, b, R, ob, lam, a, v):
+def height_frame(P, q, nbr_row, dist_row, kuse, uv, z, valid, b, R, ob, lam, a, v, kframe=-1):
     """PCA height frame of one query's neighbourhood, with duplicate screening.
 
     ``P`` (N, 3) points, ``q`` the query's index, ``nbr_row`` / ``dist_row`` (K,) its
@@ -183,7 +183,9 @@ def height_frame(P, q, nbr_row, dist_row, kuse, uv, z, valid, b, R, ob, lam, a, 
     of an earlier equidistant neighbour are left out. Writes the height coordinates into
     ``uv[b] (K, 2)``, ``z[b] (K,)``, ``valid[b] (K,)`` (zeros where invalid), the frame (the
     :func:`_eigen_frame` convention, about the neighbourhood centroid) into ``R[ob]`` and its
-    eigenvalues into ``lam[ob]``. Returns ``(count, rms distance to the query)``.
+    eigenvalues into ``lam[ob]``. ``kframe > 0``: the frame is that of the first ``kframe``
+    rows only (the coordinates still cover ``kuse`` rows). Returns ``(count, rms distance to
+    the query)`` of the rows used by the frame.
     """
     K = nbr_row.shape[0]
     px, py, pz = P[q, 0], P[q, 1], P[q, 2]
@@ -213,7 +215,7 @@ def height_frame(P, q, nbr_row, dist_row, kuse, uv, z, valid, b, R, ob, lam, a, 
         uv[b, j, 0] = dx
         uv[b, j, 1] = dy
         z[b, j] = dz
-        if ok:
+        if ok and (kframe <= 0 or j < kframe):
             cnt += 1
             cx += dx
             cy += dy
@@ -224,7 +226,7 @@ def height_frame(P, q, nbr_row, dist_row, kuse, uv, z, valid, b, R, ob, lam, a, 
         cx /= cnt
         cy /= cnt
         cz /= cnt
-        for j in range(K):
+        for j in range(K if kframe <= 0 else min(K, kframe)):
             if valid[b, j]:
                 ex = uv[b, j, 0] - cx
                 ey = uv[b, j, 1] - cy

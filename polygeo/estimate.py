@@ -50,7 +50,7 @@ import torch
 from . import jets
 from ._diffgeo_numba import jet_geometry, origin_geometry
 from ._frames_numba import height_frame, height_frames_par, height_frames_ser
-from ._jets_numba import fit_item, fit_scratch
+from ._jets_numba import _factor, _solve, fit_item, fit_scratch
 from ._validate import as_tensor, check_choice, check_int, check_positive, check_shape
 from .neighbors import PointIndex, mesh_k_ring
 from .status import Status
@@ -59,12 +59,18 @@ __all__ = [
     "DifferentialQuantities",
     "differential_quantities",
     "AUTO_K_CANDIDATES",
+    "AUTO_K_GAMMA",
+    "AUTO_K_SMOOTH",
     "AUTO_ORDERS",
     "MAX_COND",
 ]
 
 #: Neighbour counts tried by ``k="auto"`` (besides the point itself; capped by the data).
 AUTO_K_CANDIDATES = (12, 24, 48, 96, 192, 384)
+#: Width (in standard deviations) of the confidence intervals of ``k="auto"``.
+AUTO_K_GAMMA = 2.0
+#: Neighbours whose automatic sizes are pooled (median) per point by ``k="auto"``.
+AUTO_K_SMOOTH = 24
 #: Jet orders tried by ``order="auto"``.
 AUTO_ORDERS = (2, 3, 4)
 #: Default largest condition number accepted per jet order (see ``max_cond``).
@@ -161,7 +167,10 @@ _FUSED_CHUNK = 256
 
 def _fused_py(P, qsrc, qdst, nbr, dist, kuse, order, gaussian, max_cond, interp, ep, eq,
               normal, d1, d2, kk, status, fitted, count, resid, frame, coeffs):
-    """Frames -> fit -> origin geometry of each query ``i``, results into row ``qdst[i]``."""
+    """Frames -> fit -> origin geometry of each query ``i``, results into row ``qdst[i]``.
+
+    ``kuse (Q,)``: rows of ``nbr`` used per query.
+    """
     Q, K = nbr.shape
     M = coeffs.shape[1]
     nchunks = (Q + _FUSED_CHUNK - 1) // _FUSED_CHUNK
@@ -179,7 +188,7 @@ def _fused_py(P, qsrc, qdst, nbr, dist, kuse, order, gaussian, max_cond, interp,
         for i in range(c * _FUSED_CHUNK, min(Q, (c + 1) * _FUSED_CHUNK)):
             b = i - c * _FUSED_CHUNK
             o = qdst[i]
-            _, rad = height_frame(P, qsrc[i], nbr[i], dist[i], kuse, uv, z, valid, b, Rl, b,
+            _, rad = height_frame(P, qsrc[i], nbr[i], dist[i], kuse[i], uv, z, valid, b, Rl, b,
                                   lam, a, v)
             if gaussian:
                 h2 = max(rad * rad, 1e-300)
@@ -201,6 +210,211 @@ def _fused_py(P, qsrc, qdst, nbr, dist, kuse, order, gaussian, max_cond, interp,
             resid[o] = rs
 
 
+@nb.njit(cache=True, inline="always")
+def _g_column(L, Ld, D, m, a, g, y, col):
+    """Column ``a`` of ``G = S^-1`` (S the moment matrix) from ``N = D S D = L L^T``."""
+    for j in range(m):
+        g[j] = 0.0
+    g[a] = D[a]
+    _solve(L, Ld, m, g, y)
+    for j in range(m):
+        col[j] = D[j] * y[j]
+
+
+def _auto_k_py(P, qsrc, qdst, nbr, dist, sizes, kframe, order, max_cond, interp, gamma, min_dof,
+               ep, eq, normal, d1, d2, kk, status, fitted, count, resid, frame, coeffs):
+    """k="auto": nested neighbourhoods (first ``sizes[s]`` rows) of one sorted k-NN list.
+
+    One frame per point (PCA of the first ``kframe`` rows), moments accumulated along the
+    sorted list so that every candidate size costs one small solve; per size the slopes
+    ``a10, a01`` and ``H`` with their standard deviations ``sigma sqrt(G_ii)`` (``G`` the
+    inverse moment matrix, ``sigma^2`` the smallest ``RSS / (n - M)`` over the sizes with at
+    least ``min_dof`` degrees of freedom); the chosen size is the largest whose confidence
+    intervals ``value +- gamma sd`` still intersect those of every smaller size (ICI rule).
+    """
+    Q, K = nbr.shape
+    M = ep.shape[0]
+    S = sizes.shape[0]
+    n2 = 2 * order
+    nchunks = (Q + _FUSED_CHUNK - 1) // _FUSED_CHUNK
+    for c in nb.prange(nchunks):
+        uv = np.empty((1, K, 2))
+        z = np.empty((1, K))
+        valid = np.empty((1, K), dtype=np.bool_)
+        w1 = np.ones((1, 1))
+        Rl = np.empty((1, 3, 3))
+        lam = np.empty((1, 3))
+        a = np.empty((3, 3))
+        v = np.empty((3, 3))
+        mom = np.empty((n2 + 1, n2 + 1))
+        rhs = np.empty(M)
+        pu = np.empty(n2 + 1)
+        pv = np.empty(n2 + 1)
+        N = np.empty((M, M))
+        L = np.empty((M, M))
+        Linv = np.empty((M, M))
+        D = np.empty(M)
+        Ld = np.empty(M)
+        x = np.empty(M)
+        g = np.empty(M)
+        y = np.empty(M)
+        col = np.empty(M)
+        cf = np.empty((1, M))
+        st_rss = np.empty(S)
+        st_dof = np.empty(S, dtype=np.int64)
+        st_cnt = np.empty(S, dtype=np.int64)
+        st_val = np.empty((S, 3))
+        st_g = np.empty((S, 3))
+        st_cf = np.empty((S, M))
+        s2 = np.empty(S)
+        scratch = fit_scratch(order, K)
+        for i in range(c * _FUSED_CHUNK, min(Q, (c + 1) * _FUSED_CHUNK)):
+            o = qdst[i]
+            height_frame(P, qsrc[i], nbr[i], dist[i], K, uv, z, valid, 0, Rl, 0, lam, a, v,
+                         kframe)
+            hmax = 0.0
+            for j in range(K):
+                if valid[0, j]:
+                    hmax = max(hmax, uv[0, j, 0] ** 2 + uv[0, j, 1] ** 2)
+            h = math.sqrt(hmax) if hmax > 0.0 else 1.0
+            ih = 1.0 / h
+            for p in range(n2 + 1):
+                for q in range(n2 + 1):
+                    mom[p, q] = 0.0
+            for j in range(M):
+                rhs[j] = 0.0
+            zz = 0.0
+            cnt = 0
+            si = 0
+            ns = 0  # well-posed sizes stored
+            for j in range(K):
+                if valid[0, j]:
+                    su = uv[0, j, 0] * ih
+                    sv = uv[0, j, 1] * ih
+                    pu[0] = 1.0
+                    pv[0] = 1.0
+                    for p in range(1, n2 + 1):
+                        pu[p] = pu[p - 1] * su
+                        pv[p] = pv[p - 1] * sv
+                    for p in range(n2 + 1):
+                        for q in range(n2 + 1 - p):
+                            mom[p, q] += pu[p] * pv[q]
+                    zj = z[0, j]
+                    zz += zj * zj
+                    for m in range(M):
+                        rhs[m] += zj * pu[ep[m]] * pv[eq[m]]
+                    cnt += 1
+                if j + 1 < sizes[si] and j < K - 1:
+                    continue
+                si += 1
+                cc = math.inf
+                if cnt >= M:
+                    cc = _factor(mom, ep, eq, M, N, D, L, Ld, Linv)
+                if not cc <= max_cond:
+                    if ns > 0 or si >= S:
+                        break  # a larger neighbourhood turned degenerate: keep the smaller
+                    continue
+                for m in range(M):
+                    g[m] = D[m] * rhs[m]
+                _solve(L, Ld, M, g, y)
+                for m in range(M):
+                    x[m] = D[m] * y[m]
+                if interp:
+                    _g_column(L, Ld, D, M, 0, g, y, col)
+                    f = x[0] / col[0]
+                    for m in range(M):
+                        x[m] -= col[m] * f
+                    x[0] = 0.0
+                # residual sum of squares from the moments
+                xsx = 0.0
+                xr = 0.0
+                for m in range(M):
+                    xr += x[m] * rhs[m]
+                    for m2 in range(M):
+                        xsx += x[m] * x[m2] * mom[ep[m] + ep[m2], eq[m] + eq[m2]]
+                st_rss[ns] = max(zz - 2.0 * xr + xsx, 0.0)
+                st_dof[ns] = cnt - M + (1 if interp else 0)
+                st_cnt[ns] = cnt
+                # slopes and H (to first order a20 + a02) and their variances / sigma^2
+                _g_column(L, Ld, D, M, 1, g, y, col)
+                st_g[ns, 0] = max(col[1], 0.0) * ih * ih
+                _g_column(L, Ld, D, M, 2, g, y, col)
+                st_g[ns, 1] = max(col[2], 0.0) * ih * ih
+                st_val[ns, 0] = x[1] * ih
+                st_val[ns, 1] = x[2] * ih
+                st_val[ns, 2] = 0.0
+                st_g[ns, 2] = 0.0
+                if M >= 6:
+                    _g_column(L, Ld, D, M, 3, g, y, col)
+                    g33 = col[3]
+                    g35 = col[5]
+                    _g_column(L, Ld, D, M, 5, g, y, col)
+                    st_g[ns, 2] = max(g33 + col[5] + 2.0 * g35, 0.0) * ih ** 4
+                    w_ = math.sqrt(1.0 + st_val[ns, 0] ** 2 + st_val[ns, 1] ** 2)
+                    st_val[ns, 2] = (x[3] + x[5]) * ih * ih / w_
+                pu[0] = 1.0
+                for p in range(1, order + 1):
+                    pu[p] = pu[p - 1] * ih
+                for m in range(M):
+                    st_cf[ns, m] = x[m] * pu[ep[m] + eq[m]]
+                ns += 1
+                if si >= S:
+                    break
+            # pooled noise level: truncation only inflates a fit's residual, so the smallest
+            # residual variance among fits with enough degrees of freedom estimates the noise
+            nv = 0
+            for t in range(ns):
+                if st_dof[t] >= min_dof or (st_dof[t] > 0 and t == ns - 1 and nv == 0):
+                    s2[nv] = st_rss[t] / st_dof[t]
+                    nv += 1
+            sig2 = np.median(s2[:nv]) if nv > 0 else 0.0
+            chosen = -1
+            lo_u = lo_v = lo_h = -math.inf
+            hi_u = hi_v = hi_h = math.inf
+            for t in range(ns):
+                sd_u = gamma * math.sqrt(sig2 * st_g[t, 0])
+                sd_v = gamma * math.sqrt(sig2 * st_g[t, 1])
+                sd_h = gamma * math.sqrt(sig2 * st_g[t, 2])
+                lo_u = max(lo_u, st_val[t, 0] - sd_u)
+                hi_u = min(hi_u, st_val[t, 0] + sd_u)
+                lo_v = max(lo_v, st_val[t, 1] - sd_v)
+                hi_v = min(hi_v, st_val[t, 1] + sd_v)
+                lo_h = max(lo_h, st_val[t, 2] - sd_h)
+                hi_h = min(hi_h, st_val[t, 2] + sd_h)
+                if chosen >= 0 and (lo_u > hi_u or lo_v > hi_v or lo_h > hi_h):
+                    break  # the intervals no longer intersect: bias dominates
+                chosen = t
+            chosen_n = -1
+            chosen_rss = 0.0
+            if chosen >= 0:
+                chosen_n = st_cnt[chosen]
+                chosen_rss = st_rss[chosen]
+                for m in range(M):
+                    cf[0, m] = st_cf[chosen, m]
+            if chosen_n >= 0:
+                status[o] = 0
+                fitted[o] = order
+                count[o] = chosen_n
+                resid[o] = math.sqrt(chosen_rss / chosen_n)
+            else:
+                # no candidate well posed: the full list with the usual order fallback
+                fo, st, _, rs, _, cn = fit_item(uv, z, w1, False, valid, True, 0, 0.0, order,
+                                                True, max_cond, 100.0, interp, ep, eq, scratch,
+                                                cf, 0)
+                status[o] = st
+                fitted[o] = fo
+                count[o] = cn
+                resid[o] = rs
+            origin_geometry(cf, 0, Rl, 0, normal, d1, d2, kk, o)
+            for m in range(M):
+                coeffs[o, m] = cf[0, m]
+            for r in range(3):
+                for cc_ in range(3):
+                    frame[o, r, cc_] = Rl[0, r, cc_]
+
+
+_auto_k_par = nb.njit(cache=True, parallel=True)(_auto_k_py)
+_auto_k_ser = nb.njit(cache=True)(_auto_k_py)
 _fused_par = nb.njit(cache=True, parallel=True)(_fused_py)
 _fused_ser = nb.njit(cache=True)(_fused_py)
 _PARALLEL_MIN = 4096
@@ -242,6 +456,23 @@ def _fit(local: _Local, order: int, weights: np.ndarray | None, max_cond: float,
 
 def _geometry(coeffs: np.ndarray, R: np.ndarray) -> dict[str, np.ndarray]:
     return jet_geometry(coeffs, R)
+
+
+def _smooth_sizes(q: np.ndarray, chosen: np.ndarray, nbr: np.ndarray, n: int,
+                  k_smooth: int) -> np.ndarray:
+    """Rows of the k-NN list to use per query (pooled automatic choices).
+
+    The geometric median of the chosen sizes of its ``k_smooth`` nearest neighbours that
+    belong to the same chunk (itself included).
+    """
+    pos = np.full(n, -1, dtype=np.int64)
+    pos[q] = np.arange(q.size)
+    nb_ = nbr[:, : max(k_smooth, 1)]
+    p_ = np.where(nb_ >= 0, pos[np.maximum(nb_, 0)], -1)
+    vals = np.where(p_ >= 0, np.log(np.maximum(chosen[np.maximum(p_, 0)], 1)), np.nan)
+    vals[:, 0] = np.log(np.maximum(chosen, 1))
+    med = np.exp(np.nanmedian(vals, axis=1))
+    return np.clip(np.rint(med), 1, nbr.shape[1]).astype(np.int64)
 
 
 def _gaussian_weights(local: _Local) -> np.ndarray:
@@ -390,9 +621,21 @@ def differential_quantities(
         ``k + 1`` points: the convention of CGAL's ``jet_estimate_normals`` (same k, same
         points, same result). Clipped to the number of finite points. Must be at least
         ``n_coeffs(order) - 1`` (5 for order 2).
-        ``"auto"``: per point, the largest of ``k_candidates`` whose normal still agrees with
-        those of all smaller neighbourhoods within their noise-driven confidence intervals
-        (intersection of confidence intervals, a bias-variance rule).
+        ``"auto"``: per point, the largest of ``k_candidates`` whose estimates still agree
+        with those of all smaller neighbourhoods within their noise-driven confidence
+        intervals (intersection of confidence intervals, ICI: a bias-variance rule). With one
+        order and uniform weights this runs compiled on one k-NN list: one frame per point
+        (PCA of the candidate nearest ``4 M`` points), moments accumulated along the sorted
+        neighbours so that each candidate costs one small solve; intervals ``value +-
+        AUTO_K_GAMMA * sd`` on the slopes ``a10, a01`` and on ``H``, with ``sd = sigma
+        sqrt(G_ii)`` (``G`` the inverse moment matrix, ``sigma^2`` the median of ``RSS / (n -
+        M)`` over the candidates with at least ``3 M`` degrees of freedom); the per-point
+        choices are then pooled (geometric median over the ``AUTO_K_SMOOTH`` nearest
+        neighbours) and each point is refitted at the pooled size in its own PCA frame.
+        Measured (torus, 20k vertices, order 2; median normal error / median relative error
+        of H): 0.1 % noise 0.67 deg / 0.08 (best fixed k: 0.66 deg at k = 200, 0.064 at
+        k = 100), 1 % noise 5.6 deg / 0.38 (best fixed: 5.4 deg / 0.18 at k = 400), clean
+        data 0.05 deg / 0.008 (k = 20: 0.04 deg / 0.008).
     radius : float, optional
         Use all neighbours within this distance (L) instead of k nearest (``k`` then caps
         the count at ``k + 1`` points, nearest kept, unless ``k="auto"``).
@@ -561,6 +804,11 @@ def differential_quantities(
     graph = np.full((n, k_graph), -1, dtype=np.int64)
     torch_parts: list[tuple[np.ndarray, Any, Any, Any]] = []
 
+    # k="auto" with one order: nested neighbourhoods of one k-NN list (compiled)
+    fast_auto = (auto_k and len(orders) == 1 and weights is None and radius is None
+                 and ring is None and not use_torch)
+    if auto_k:
+        batch_size = min(batch_size, max(1024, 4_000_000 // max(kq, 1)))
     # visit the points in grid-cell order: neighbouring queries share neighbours (cache)
     visit = index.spatial_order() if index is not None else None
     if visit is None or visit.size != n:
@@ -608,13 +856,38 @@ def differential_quantities(
         sizes = [c for c in kc if c <= nbr.shape[1]] or [nbr.shape[1]]
         if auto_k and radius is None and ring is None:
             sizes = sorted({min(c, kq) for c in kc})
+        if auto_k and fast_auto:
+            o_ = orders[0]
+            e = jets._exponents_np(o_)
+            sz = np.array(sorted({min(c, nbr.shape[1]) for c in kc}), dtype=np.int64)
+            m_ = jets.n_coeffs(o_)
+            kframe = int(min(sz, key=lambda c: abs(int(c) - 4 * m_)))
+            kernel = _auto_k_par if q.size >= _PARALLEL_MIN // 8 else _auto_k_ser
+            kernel(P, np.ascontiguousarray(rep[q]), np.ascontiguousarray(q),
+                   np.ascontiguousarray(nbr), np.ascontiguousarray(dist), sz, kframe, o_,
+                   float(max_cond or MAX_COND[o_]), interpolate, AUTO_K_GAMMA, 3 * m_,
+                   np.ascontiguousarray(e[:, 0]), np.ascontiguousarray(e[:, 1]),
+                   res["normals"], res["d1"], res["d2"], kk_all, status, fitted_order, n_nb,
+                   resid, frame, coeffs)
+            # per-point choices are noisy: refit at the (geometric) median choice of the
+            # point's nearest neighbours in this chunk, with that neighbourhood's own frame
+            kuse = _smooth_sizes(q, n_nb[q], nbr, n, AUTO_K_SMOOTH)
+            kernel = _fused_par if q.size >= _PARALLEL_MIN // 8 else _fused_ser
+            kernel(P, np.ascontiguousarray(rep[q]), np.ascontiguousarray(q),
+                   np.ascontiguousarray(nbr), np.ascontiguousarray(dist), kuse, o_, False,
+                   float(max_cond or MAX_COND[o_]), interpolate,
+                   np.ascontiguousarray(e[:, 0]), np.ascontiguousarray(e[:, 1]),
+                   res["normals"], res["d1"], res["d2"], kk_all, status, fitted_order, n_nb,
+                   resid, frame, coeffs)
+            continue
         if len(sizes) == 1 and len(orders) == 1:
             # the common case, fused: frames -> fit -> geometry straight into the outputs
             o_ = orders[0]
             e = jets._exponents_np(o_)
             kernel = _fused_par if q.size >= _PARALLEL_MIN else _fused_ser
             kernel(P, np.ascontiguousarray(rep[q]), np.ascontiguousarray(q),
-                   np.ascontiguousarray(nbr), np.ascontiguousarray(dist), int(sizes[0]), o_,
+                   np.ascontiguousarray(nbr), np.ascontiguousarray(dist),
+                   np.full(q.size, int(sizes[0]), dtype=np.int64), o_,
                    weights == "gaussian", float(max_cond or MAX_COND[o_]), interpolate,
                    np.ascontiguousarray(e[:, 0]), np.ascontiguousarray(e[:, 1]),
                    res["normals"], res["d1"], res["d2"], kk_all, status, fitted_order, n_nb,

@@ -234,7 +234,7 @@ class _Grid:
                 continue
             ix = np.minimum(((pts - lo) / h).astype(np.int64), dims - 1)
             key = ix[:, 0] + dims[0] * (ix[:, 1] + dims[1] * ix[:, 2])
-            occ = n / np.unique(key).size
+            occ = n / max(int(np.count_nonzero(np.bincount(key))), 1)
             if occ >= ppc / 2:
                 break
             h *= min((ppc / occ) ** 0.5, 2.0)
@@ -335,7 +335,7 @@ class PointIndex:
         all_q = bool(fin_q.all())
         kk = min(k, self.n_finite)
         q_sel = queries if all_q else queries[fin_q]
-        if self.grid is not None and not np.isfinite(upper) and kk <= 256:
+        if self.grid is not None and not np.isfinite(upper) and kk <= 1024:
             # the grid kernel pads with -1 / inf itself and sees finite points only
             i, d = self.grid.query(np.ascontiguousarray(q_sel), kk, workers != 1)
             missing = i < 0

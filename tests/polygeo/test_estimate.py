@@ -477,3 +477,33 @@ def test_convergence_order_interpolating(order):
 def test_interpolate_validator():
     with pytest.raises(TypeError, match="interpolate"):
         differential_quantities(sy.sphere(50).points, interpolate=1)
+
+
+# ------------------------------------------------------------------ automatic k
+
+
+def test_auto_k_single_candidate_equals_fixed_k():
+    s = sy.torus(3000, seed=33, noise=0.001)
+    a = differential_quantities(s.noisy_points, k="auto", k_candidates=(30,))
+    b = differential_quantities(s.noisy_points, k=30)
+    np.testing.assert_array_equal(a.n_neighbors, b.n_neighbors)
+    for name in ("normals", "mean_curvature", "gaussian_curvature"):
+        np.testing.assert_allclose(getattr(a, name), getattr(b, name), atol=1e-10)
+
+
+def test_auto_k_close_to_best_fixed_k_under_noise():
+    s = sy.sphere(8000, radius=1.0, seed=34, noise=0.003)
+    cands = (12, 24, 48, 96, 192)
+    auto = differential_quantities(s.noisy_points, k="auto", k_candidates=cands)
+    assert (auto.status == 0).mean() > 0.99
+    err_auto = np.median(angle_deg(auto.normals, s.normals))
+    h_auto = np.median(np.abs(auto.mean_curvature - s.mean_curvature))
+    errs, hs = [], []
+    for k in cands:
+        r = differential_quantities(s.noisy_points, k=k)
+        errs.append(np.median(angle_deg(r.normals, s.normals)))
+        hs.append(np.median(np.abs(r.mean_curvature - s.mean_curvature)))
+    # no better than the best fixed size in hindsight, but far better than a poor one
+    assert err_auto < 1.3 * min(errs)
+    assert h_auto < 1.6 * min(hs)
+    assert err_auto < 0.5 * max(errs)
