@@ -120,6 +120,14 @@ def _eigen_frame(sxx, sxy, sxz, syy, syz, szz, a, v, R, i, lam, refx, refy, refz
     R[i, 0, 2], R[i, 1, 2], R[i, 2, 2] = e3x, e3y, e3z
 
 
+@nb.njit(cache=True, inline="always")
+def _usable(P, mask, has_mask, b, k):
+    """Point ``k`` of item ``b`` is unmasked and finite."""
+    if has_mask and not mask[b, k]:
+        return False
+    return abs(P[b, k, 0]) < math.inf and abs(P[b, k, 1]) < math.inf and abs(P[b, k, 2]) < math.inf
+
+
 @nb.njit(cache=True, parallel=True)
 def _pca_kernel(P, w, has_w, mask, has_mask, center, has_center, ref, has_ref, out_c, out_R,
                 out_lam, out_count):
@@ -134,11 +142,9 @@ def _pca_kernel(P, w, has_w, mask, has_mask, center, has_center, ref, has_ref, o
             cx = cy = cz = 0.0
             cnt = 0
             for k in range(K):
-                if has_mask and not mask[b, k]:
+                if not _usable(P, mask, has_mask, b, k):
                     continue
                 x, y, z = P[b, k, 0], P[b, k, 1], P[b, k, 2]
-                if not (abs(x) < math.inf and abs(y) < math.inf and abs(z) < math.inf):
-                    continue
                 cnt += 1
                 wk = w[b, k] if has_w else 1.0
                 sw += wk
@@ -152,13 +158,10 @@ def _pca_kernel(P, w, has_w, mask, has_mask, center, has_center, ref, has_ref, o
                 cx, cy, cz = cx / swc, cy / swc, cz / swc
             sxx = sxy = sxz = syy = syz = szz = 0.0
             for k in range(K):
-                if has_mask and not mask[b, k]:
-                    continue
-                x, y, z = P[b, k, 0], P[b, k, 1], P[b, k, 2]
-                if not (abs(x) < math.inf and abs(y) < math.inf and abs(z) < math.inf):
+                if not _usable(P, mask, has_mask, b, k):
                     continue
                 wk = w[b, k] if has_w else 1.0
-                dx, dy, dz = x - cx, y - cy, z - cz
+                dx, dy, dz = P[b, k, 0] - cx, P[b, k, 1] - cy, P[b, k, 2] - cz
                 sxx += wk * dx * dx
                 sxy += wk * dx * dy
                 sxz += wk * dx * dz

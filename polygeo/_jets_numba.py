@@ -17,7 +17,7 @@ import torch
 
 from .status import Status
 
-__all__ = ["fit_numba", "fit_item", "fit_scratch"]
+__all__ = ["fit_numba", "fit_item", "fit_scratch", "accumulate_sample"]
 
 _OK = int(Status.OK)
 _TOO_FEW = int(Status.TOO_FEW_POINTS)
@@ -139,6 +139,37 @@ def _is_valid(uv, z, w, has_w, mask, has_mask, b, k):
 
 
 
+@nb.njit(cache=True, inline="always")
+def accumulate_sample(su, sv, wk, zk, mom, rhs, pu, pv, n2, M, ep, eq):
+    """Add one weighted sample to the moments ``sum w su^p sv^q`` (p + q <= n2) and rhs."""
+    pu[0] = wk
+    pv[0] = 1.0
+    for p in range(1, n2 + 1):
+        pu[p] = pu[p - 1] * su
+        pv[p] = pv[p - 1] * sv
+    for p in range(n2 + 1):
+        for q in range(n2 + 1 - p):
+            mom[p, q] += pu[p] * pv[q]
+    for j in range(M):
+        rhs[j] += zk * pu[ep[j]] * pv[eq[j]]
+
+
+@nb.njit(cache=True, inline="always")
+def _sample_residual(uv, z, b, k, ih, x, m, o, pu, pv, ep, eq):
+    """Height residual of sample ``k`` of item ``b`` against the scaled jet ``x[:m]``."""
+    su = uv[b, k, 0] * ih
+    sv = uv[b, k, 1] * ih
+    pu[0] = 1.0
+    pv[0] = 1.0
+    for p in range(1, o + 1):
+        pu[p] = pu[p - 1] * su
+        pv[p] = pv[p - 1] * sv
+    r = z[b, k]
+    for j in range(m):
+        r -= x[j] * pu[ep[j]] * pv[eq[j]]
+    return r
+
+
 @nb.njit(cache=True)
 def _moments(uv, z, w, has_w, ok, b, K, ih, mom, rhs, pu, pv, n2, M, ep, eq):
     """Weighted moments sum w su^p sv^q (p + q <= n2) and right-hand side, any order."""
@@ -150,19 +181,8 @@ def _moments(uv, z, w, has_w, ok, b, K, ih, mom, rhs, pu, pv, n2, M, ep, eq):
     for k in range(K):
         if not ok[k]:
             continue
-        su = uv[b, k, 0] * ih
-        sv = uv[b, k, 1] * ih
-        pu[0] = w[b, k] if has_w else 1.0
-        pv[0] = 1.0
-        for p in range(1, n2 + 1):
-            pu[p] = pu[p - 1] * su
-            pv[p] = pv[p - 1] * sv
-        for p in range(n2 + 1):
-            for q in range(n2 + 1 - p):
-                mom[p, q] += pu[p] * pv[q]
-        zk = z[b, k]
-        for j in range(M):
-            rhs[j] += zk * pu[ep[j]] * pv[eq[j]]
+        accumulate_sample(uv[b, k, 0] * ih, uv[b, k, 1] * ih, w[b, k] if has_w else 1.0,
+                          z[b, k], mom, rhs, pu, pv, n2, M, ep, eq)
 
 
 @nb.njit(cache=True, inline="always")
@@ -269,16 +289,7 @@ def _residual(uv, z, w, has_w, ok, b, K, ih, x, m, o, pu, pv, ep, eq):
     for k in range(K):
         if not ok[k]:
             continue
-        su = uv[b, k, 0] * ih
-        sv = uv[b, k, 1] * ih
-        pu[0] = 1.0
-        pv[0] = 1.0
-        for p in range(1, o + 1):
-            pu[p] = pu[p - 1] * su
-            pv[p] = pv[p - 1] * sv
-        r = z[b, k]
-        for j in range(m):
-            r -= x[j] * pu[ep[j]] * pv[eq[j]]
+        r = _sample_residual(uv, z, b, k, ih, x, m, o, pu, pv, ep, eq)
         wk = w[b, k] if has_w else 1.0
         sw += wk
         sr += wk * r * r
@@ -384,16 +395,7 @@ def fit_item(uv, z, w, has_w, mask, has_mask, b, h_given, order, fallback, max_c
                 for k in range(K):
                     if not ok[k]:
                         continue
-                    su = uv[b, k, 0] * ih
-                    sv = uv[b, k, 1] * ih
-                    pu[0] = 1.0
-                    pv[0] = 1.0
-                    for p in range(1, o + 1):
-                        pu[p] = pu[p - 1] * su
-                        pv[p] = pv[p - 1] * sv
-                    r = z[b, k]
-                    for j in range(m):
-                        r -= x[j] * pu[ep[j]] * pv[eq[j]]
+                    r = _sample_residual(uv, z, b, k, ih, x, m, o, pu, pv, ep, eq)
                     if has_w:
                         r *= w[b, k]
                     for j in range(m):

@@ -50,7 +50,7 @@ import torch
 from . import jets
 from ._diffgeo_numba import jet_geometry, origin_geometry
 from ._frames_numba import height_frame, height_frames_par, height_frames_ser
-from ._jets_numba import _factor, _solve, fit_item, fit_scratch
+from ._jets_numba import _factor, _solve, accumulate_sample, fit_item, fit_scratch
 from ._validate import as_tensor, check_choice, check_int, check_positive, check_shape
 from .neighbors import PointIndex, mesh_k_ring
 from .status import Status
@@ -289,20 +289,9 @@ def _auto_k_py(P, qsrc, qdst, nbr, dist, sizes, kframe, order, max_cond, interp,
             ns = 0  # well-posed sizes stored
             for j in range(K):
                 if valid[0, j]:
-                    su = uv[0, j, 0] * ih
-                    sv = uv[0, j, 1] * ih
-                    pu[0] = 1.0
-                    pv[0] = 1.0
-                    for p in range(1, n2 + 1):
-                        pu[p] = pu[p - 1] * su
-                        pv[p] = pv[p - 1] * sv
-                    for p in range(n2 + 1):
-                        for q in range(n2 + 1 - p):
-                            mom[p, q] += pu[p] * pv[q]
-                    zj = z[0, j]
-                    zz += zj * zj
-                    for m in range(M):
-                        rhs[m] += zj * pu[ep[m]] * pv[eq[m]]
+                    accumulate_sample(uv[0, j, 0] * ih, uv[0, j, 1] * ih, 1.0, z[0, j], mom, rhs,
+                                      pu, pv, n2, M, ep, eq)
+                    zz += z[0, j] ** 2
                     cnt += 1
                 if j + 1 < sizes[si] and j < K - 1:
                     continue

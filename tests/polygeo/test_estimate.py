@@ -93,6 +93,13 @@ def graph_truth():
     return n, H
 
 
+def graph_samples(h, pattern):
+    """The origin and ``h``-scaled samples of the graph of :func:`graph_truth`."""
+    xy = np.vstack([[0.0, 0.0], h * pattern])
+    z = np.exp(xy[:, 0] / 2) * np.cos(0.7 * xy[:, 1]) - 1 + 0.3 * xy[:, 0] * xy[:, 1]
+    return np.c_[xy, z]
+
+
 @pytest.mark.parametrize("order", [2, 3])
 def test_convergence_order(order):
     rng = np.random.default_rng(7)
@@ -101,9 +108,7 @@ def test_convergence_order(order):
     hs = np.array([0.2, 0.1, 0.05, 0.025])
     en, eh = [], []
     for h in hs:
-        xy = np.vstack([[0.0, 0.0], h * pattern])
-        z = np.exp(xy[:, 0] / 2) * np.cos(0.7 * xy[:, 1]) - 1 + 0.3 * xy[:, 0] * xy[:, 1]
-        pts = np.c_[xy, z]
+        pts = graph_samples(h, pattern)
         normals = np.tile([0.0, 0.0, 1.0], (len(pts), 1))
         res = differential_quantities(pts, normals=normals, k=len(pts) - 1, order=order)
         en.append(
@@ -466,10 +471,9 @@ def test_convergence_order_interpolating(order):
     hs = np.array([0.2, 0.1, 0.05, 0.025])
     eh = []
     for h in hs:
-        xy = np.vstack([[0.0, 0.0], h * pattern])
-        z = np.exp(xy[:, 0] / 2) * np.cos(0.7 * xy[:, 1]) - 1 + 0.3 * xy[:, 0] * xy[:, 1]
-        res = differential_quantities(np.c_[xy, z], k=len(xy) - 1, order=order,
-                                      interpolate=True, orient="none")
+        pts = graph_samples(h, pattern)
+        res = differential_quantities(pts, k=len(pts) - 1, order=order, interpolate=True,
+                                      orient="none")
         eh.append(abs(abs(res.mean_curvature[0]) - abs(h_true)))
     assert np.polyfit(np.log(hs), np.log(eh), 1)[0] > order - 1 - 0.3
 
