@@ -1,7 +1,8 @@
 """Benchmark of polygeo's jet estimator: accuracy against throughput, peers, robustness.
 
 Run ``python benchmarks/bm_jets.py [--quick] [--out DIR]``. Writes ``bm_jets.json`` and
-``bm_jets.png`` (error against throughput, one curve per method) into ``benchmarks/results``.
+``bm_jets.png`` (error against throughput: one colour/marker per method, one column per noise
+level; a parsimony row) into ``benchmarks/results``.
 
 What is measured (issue 2, Benchmark section):
 
@@ -582,12 +583,14 @@ def main(argv=None) -> int:
         orders, ks = [2], [20]
         ref_size = 20_000
         park = [20, 50, 100]
+        par_noises = (0.001,)
     else:
         surfaces = ["torus", "cylinder", "sphere", "monge"]
         noises, sizes = [0.0, 0.001, 0.01], [10_000, 100_000]
         orders, ks = [1, 2, 3, 4], [20, 50, 100]
         ref_size = 100_000
         park = [20, 50, 100, 200, 400]
+        par_noises = (0.001, 0.01)
     peers = {} if args.no_peers else available_peers()
     record = {
         "benchmark": "jets",
@@ -627,7 +630,7 @@ def main(argv=None) -> int:
     if "accuracy" in sections:
         _accuracy_section(record, surfaces, noises, sizes, orders, ks, peers, tqdm)
     if "parsimony" in sections:
-        _parsimony_section(record, ref_size, park, tqdm)
+        _parsimony_section(record, ref_size, park, tqdm, par_noises)
     if "robustness" in sections:
         record["robustness"] = run_robustness()
         record["robustness_legend"] = classify.__doc__
@@ -748,6 +751,23 @@ def _accuracy_section(record, surfaces, noises, sizes, orders, ks, peers, tqdm):
                     entry["border"] = metrics(data, r.normals, r.mean_curvature, None,
                                               sel=border, h_sign=sgn)
                 record["accuracy"].append(entry)
+        # the interpolation variant, and libigl's own neighbourhoods (mesh 2-rings), at order 2
+        variants = [("polygeo_interpolate", dict(k=20, interpolate=True)),
+                    ("polygeo_2ring", dict(k=20, rings=2, faces=F)),
+                    ("polygeo_2ring_interpolate", dict(k=20, rings=2, faces=F, interpolate=True))]
+        for name, kw in variants:
+            kw = dict(kw)
+            r, dt = run_polygeo(P, F, kw.pop("k"), 2, **kw)
+            sgn = np.sign(np.einsum("ij,ij->i", r.normals, data.normals))
+            entry = dict(method=name, surface=surf, noise=noise, n=n, k=20, order=2,
+                         pts_per_s=n / dt, flagged=int((r.status != 0).sum()),
+                         median_neighbours=float(np.median(r.n_neighbors)),
+                         **metrics(data, r.normals, r.mean_curvature, r.gaussian_curvature,
+                                   h_sign=sgn))
+            if border is not None:
+                entry["border"] = metrics(data, r.normals, r.mean_curvature, None,
+                                          sel=border, h_sign=sgn)
+            record["accuracy"].append(entry)
         for order in orders:
             try:
                 nbres = numpy_baseline(P, 20, order)
@@ -791,24 +811,27 @@ def _accuracy_section(record, surfaces, noises, sizes, orders, ks, peers, tqdm):
 
 
 
-def _parsimony_section(record, ref_size, park, tqdm):
-    data = make_surface("torus", ref_size, 0.001)
-    P = data.noisy_points
-    n = len(P)
-    pars = []
-    settings = [dict(k=k, order=2) for k in park] + [
-        dict(k=20, order="auto"), dict(k=100, order="auto"),
-        dict(k="auto", order=2), dict(k="auto", order="auto"),
-    ]
-    for st in tqdm(settings, desc="parsimony", unit="setting"):
-        r, dt = run_polygeo(P, None, st["k"], st["order"])
-        sgn = np.sign(np.einsum("ij,ij->i", r.normals, data.normals))
-        pars.append(dict(k=st["k"], order=st["order"], pts_per_s=n / dt,
-                         median_k=float(np.median(r.n_neighbors)),
-                         order_histogram=np.bincount(r.order, minlength=5).tolist(),
-                         **metrics(data, r.normals, r.mean_curvature, r.gaussian_curvature,
-                                   h_sign=sgn)))
-    record["parsimony"] = {"surface": "torus", "noise": 0.001, "n": n, "runs": pars}
+def _parsimony_section(record, ref_size, park, tqdm, noises=(0.001, 0.01)):
+    runs = []
+    for noise in noises:
+        data = make_surface("torus", ref_size, noise)
+        P = data.noisy_points
+        n = len(P)
+        settings = [dict(k=k, order=2) for k in park] + [
+            dict(k=20, order="auto"), dict(k=100, order="auto"),
+            dict(k="auto", order=2), dict(k="auto", order="auto"),
+        ]
+        for st in tqdm(settings, desc=f"parsimony {noise:g}", unit="setting"):
+            r, dt = run_polygeo(P, None, st["k"], st["order"])
+            sgn = np.sign(np.einsum("ij,ij->i", r.normals, data.normals))
+            runs.append(dict(noise=noise, n=n, k=st["k"], order=st["order"], pts_per_s=n / dt,
+                             pts_per_cpu_s=n / max(run_polygeo.last_cpu, 1e-9),
+                             median_k=float(np.median(r.n_neighbors)),
+                             order_histogram=np.bincount(r.order, minlength=5).tolist(),
+                             **metrics(data, r.normals, r.mean_curvature, r.gaussian_curvature,
+                                       h_sign=sgn)))
+    record["parsimony"] = {"surface": "torus", "noises": list(noises), "n": ref_size,
+                           "runs": runs}
 
 
 def _json_default(o):
@@ -845,58 +868,104 @@ def _print_robustness(table):
             str(row.get(m, {}).get("outcome", "-"))[:14].ljust(16) for m in methods))
 
 
+_STYLE = {}  # method -> (colour, marker), fixed on first use so that panels agree
+
+
+def _style(method):
+    if method not in _STYLE:
+        i = len(_STYLE)
+        _STYLE[method] = (f"C{i % 10}", "osD^v<>pXh*"[i % 11])
+    return _STYLE[method]
+
+
 def chart(record, png):
+    """Error against throughput: one colour/marker per method, one column per noise level.
+
+    Rows: median normal error, median relative error of H (torus, largest size), and the
+    parsimony runs (fixed k at order 2 as a line, automatic settings as stars).
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    acc = [a for a in record["accuracy"] if "pts_per_s" in a]
-    fig, axes = plt.subplots(1, 3, figsize=(18, 5.5))
-    ax_n, ax_h, ax_p = axes
-    tor = [a for a in acc if a["surface"] == "torus" and a["noise"] == 0.001]
-    size = max((a["n"] for a in tor), default=0)
-    sel = [a for a in tor if a["n"] == size]
-    methods = sorted({a["method"] for a in sel})
-    for m in methods:
-        rows = [a for a in sel if a["method"] == m]
+    acc = [a for a in record["accuracy"] if "pts_per_s" in a and a["surface"] == "torus"]
+    size = max((a["n"] for a in acc), default=0)
+    acc = [a for a in acc if a["n"] == size]
+    noises = sorted({a["noise"] for a in acc}) or [0.0]
+    pars = record.get("parsimony", {}).get("runs", [])
+    p_noises = sorted({p.get("noise", 0.001) for p in pars})
+    ncol = max(len(noises), len(p_noises), 1)
+    fig, axes = plt.subplots(3, ncol, figsize=(5.4 * ncol, 13), squeeze=False)
+
+    def label(a):
+        m = a["method"]
         if m == "polygeo":
-            for order in sorted({a["order"] for a in rows}):
-                rr = sorted([a for a in rows if a["order"] == order], key=lambda a: a["k"])
-                x = [a["pts_per_s"] for a in rr]
-                ax_n.plot(x, [a["normal_median_deg"] for a in rr], "o-",
-                          label=f"polygeo order {order} (k={','.join(str(a['k']) for a in rr)})")
-                ax_h.plot(x, [a.get("H_rel_median") or np.nan for a in rr], "o-",
-                          label=f"polygeo order {order}")
-        else:
-            rr = sorted(rows, key=lambda a: (a.get("order") or 0))
-            x = [a["pts_per_s"] for a in rr]
-            ax_n.plot(x, [a.get("normal_median_deg", np.nan) for a in rr], "s--", label=m)
-            ax_h.plot(x, [a.get("H_rel_median") or np.nan for a in rr], "s--", label=m)
-    for ax, t in ((ax_n, "median normal error [deg]"), (ax_h, "median relative error of H")):
+            return f"polygeo order {a['order']}"
+        if m == "cgal_jet_normals":
+            return f"CGAL jet degree {a['order']}"
+        return m
+
+    handles = {}
+    for c, nz in enumerate(noises):
+        rows = [a for a in acc if a["noise"] == nz]
+        for r_i, key in enumerate(("normal_median_deg", "H_rel_median")):
+            ax = axes[r_i, c]
+            for a in rows:
+                y = a.get(key)
+                if y is None or not np.isfinite(y) or y <= 0:
+                    continue
+                lab = label(a)
+                col, mk = _style(lab)
+                h = ax.scatter(a["pts_per_s"], y, color=col, marker=mk, s=46, alpha=0.85)
+                handles.setdefault(lab, h)
+                if a["method"] == "polygeo":
+                    ax.annotate(f"k{a['k']}", (a["pts_per_s"], y), fontsize=6,
+                                xytext=(3, 2), textcoords="offset points")
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.grid(True, which="both", alpha=0.3)
+            ax.set_xlabel("throughput [points/s]")
+            ax.set_ylabel("median normal error [deg]" if r_i == 0
+                          else "median relative error of H")
+            ax.set_title(f"torus {size} vertices, noise {100 * nz:g}% of diagonal", fontsize=9)
+    for c in range(len(noises), ncol):
+        axes[0, c].axis("off")
+        axes[1, c].axis("off")
+    for c in range(ncol):
+        ax = axes[2, c]
+        if c >= len(p_noises):
+            ax.axis("off")
+            continue
+        nz = p_noises[c]
+        runs = [p for p in pars if p.get("noise", 0.001) == nz]
+        fixed = sorted([p for p in runs if p["k"] != "auto" and p["order"] != "auto"],
+                       key=lambda p: p["k"])
+        x = [p["pts_per_s"] for p in fixed]
+        y = [p.get("H_rel_median") or np.nan for p in fixed]
+        col, _ = _style("fixed k, order 2")
+        h = ax.plot(x, y, "-", color=col, marker="o")[0]
+        handles.setdefault("fixed k, order 2", h)
+        for p in fixed:
+            ax.annotate(f"k{p['k']}", (p["pts_per_s"], p.get("H_rel_median") or np.nan),
+                        fontsize=7, xytext=(3, 2), textcoords="offset points")
+        for p in runs:
+            if p["k"] == "auto" or p["order"] == "auto":
+                lab = f"k={p['k']}, order={p['order']}"
+                col, _ = _style(lab)
+                h = ax.scatter(p["pts_per_s"], p.get("H_rel_median") or np.nan, color=col,
+                               marker="*", s=160)
+                handles.setdefault(lab, h)
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_xlabel("throughput [points/s]")
-        ax.set_ylabel(t)
         ax.grid(True, which="both", alpha=0.3)
-    ax_n.set_title(f"torus, {size} vertices, noise 0.1% of the diagonal")
-    ax_n.legend(fontsize=7)
-    pars = record.get("parsimony", {}).get("runs", [])
-    for p in pars:
-        auto = p["k"] == "auto" or p["order"] == "auto"
-        ax_p.scatter(p["pts_per_s"], p.get("H_rel_median") or np.nan,
-                     marker="*" if auto else "o", s=120 if auto else 40,
-                     color="C3" if auto else "C0")
-        ax_p.annotate(f"k={p['k']}, n={p['order']}", (p["pts_per_s"], p.get("H_rel_median")),
-                      fontsize=7)
-    ax_p.set_xscale("log")
-    ax_p.set_yscale("log")
-    ax_p.set_xlabel("throughput [points/s]")
-    ax_p.set_ylabel("median relative error of H")
-    ax_p.set_title("parsimony: fixed (o) vs automatic (*) k / order, 0.1% noise")
-    ax_p.grid(True, which="both", alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(png, dpi=110)
+        ax.set_xlabel("throughput [points/s]")
+        ax.set_ylabel("median relative error of H")
+        ax.set_title(f"parsimony: torus, noise {100 * nz:g}% (stars: automatic)", fontsize=9)
+    fig.legend(list(handles.values()), list(handles.keys()), loc="lower center",
+               ncol=min(5, len(handles)), fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    fig.savefig(png, dpi=100)
     plt.close(fig)
 
 
