@@ -162,6 +162,10 @@ def demo(args: argparse.Namespace) -> int:
         _print_summary(name, s)
     print("  (e_3D = ||X - X_gt||_F / ||X_gt||_F; 'fixed' = the template kept fixed; "
           "ratio = e_3D / fixed)")
+    for name, s in rows:
+        if s.get("e_3d_template", 0) > 0:
+            print(f"  {name}: e_3D is {100 * s['e_3d'] / s['e_3d_template']:.1f} % of the fixed "
+                  f"template's (target <= 25 %), e_n {s['e_n']:.2f} deg (target <= 5)")
     if tmp is not None:
         tmp.cleanup()
     return 0
