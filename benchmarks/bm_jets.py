@@ -963,7 +963,7 @@ def chart(record, png):
         ax.set_ylabel("median relative error of H")
         ax.set_title(f"parsimony: torus, noise {100 * nz:g}% (stars: automatic)", fontsize=9)
     fig.legend(list(handles.values()), list(handles.keys()), loc="lower center",
-               ncol=min(5, len(handles)), fontsize=8, frameon=False)
+               ncol=max(1, min(5, len(handles))), fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, 0.07, 1, 1))
     fig.savefig(png, dpi=100)
     plt.close(fig)
