@@ -77,6 +77,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="least-squares weights: uniform (CGAL) or Gaussian in the distance",
     )
     p.add_argument(
+        "--interpolate",
+        action="store_true",
+        help="make each jet pass through its point (for exact samples, e.g. vertices of an "
+        "analytic or subdivision surface: smaller order-2 curvature bias; worse on noisy data)",
+    )
+    p.add_argument(
         "--orient",
         choices=["auto", "input", "mesh", "propagate", "none"],
         default="auto",
@@ -121,6 +127,7 @@ def run(args: argparse.Namespace) -> int:
         order=order,
         weights=None if args.weights == "uniform" else "gaussian",
         orient=args.orient,
+        interpolate=bool(args.interpolate),
         progress=False if args.quiet else None,
     )
     t_fit = time.perf_counter() - t1

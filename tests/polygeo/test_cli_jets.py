@@ -103,3 +103,17 @@ def test_cli_help_explains_conventions(capsys):
     text = capsys.readouterr().out
     for word in ("k1 >= k2", "-1/r", "Status codes", "--radius", "--order", "--ply", "--quiet"):
         assert word in text
+
+
+def test_cli_interpolate_flag(tmp_path):
+    # exact sphere vertices: the interpolating jets have the smaller bias of H
+    s = sy.sphere(3000, radius=2.0, seed=5)
+    src = tmp_path / "sphere.npy"
+    np.save(src, s.points)
+    errs = []
+    for extra in ([], ["--interpolate"]):
+        out = tmp_path / f"o{len(extra)}.npz"
+        assert main(["jets", str(src), "-o", str(out), "--quiet", *extra]) == 0
+        with np.load(out) as z:
+            errs.append(np.median(np.abs(z["mean_curvature"] - s.mean_curvature)))
+    assert errs[1] < 0.85 * errs[0]
