@@ -109,7 +109,7 @@ def _run(args: argparse.Namespace) -> int:
         lines += [
             f"Chamfer x 1e3    resample level {level}, input normalised to the unit sphere, "
             f"{chamfer.n_samples} input samples:",
-            f"  surface        {c['surface']:.5f}  (point-to-surface: measures the "
+            f"  surface        {c['surface']:.3e}  (point-to-surface: measures the "
             "reconstruction)",
             f"  points         {c['points']:.4f}  (Table 5.1 point protocol, "
             f"{chamfer.n_samples} samples each; sampling floor {c['points_floor']:.4f})",
