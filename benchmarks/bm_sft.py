@@ -223,6 +223,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--jobs", type=int, default=1, help="runs in parallel, one process each (default 1)"
     )
+    ap.add_argument(
+        "--from-partial",
+        action="store_true",
+        help="no runs: summarise the runs in <out>/bm_sft.partial.json (interrupted benchmark)",
+    )
     a = ap.parse_args(argv)
 
     import torch
@@ -265,7 +270,9 @@ def main(argv: list[str] | None = None) -> int:
         partial.write_text(json.dumps({"frames": frames, "results": results}, indent=1) + "\n")
 
     args = [(label, fam, st, str(seqs[k]), k, frames, a.threads) for label, fam, st, k in jobs]
-    if a.jobs <= 1:
+    if a.from_partial:  # summarise the runs an interrupted benchmark finished
+        results = json.loads(partial.read_text())["results"]
+    elif a.jobs <= 1:
         for job in tqdm(args, desc="bm_sft runs", unit="run"):
             record(_job(job))
         mem = _mem_job((str(data), mem_frames, a.threads)) if mem_frames else None
@@ -288,6 +295,8 @@ def main(argv: list[str] | None = None) -> int:
     agg = {}
     for label, fam, st, _ in configs(quick):
         rs = [r for r in results if r["config"] == label and r["kind"] in sweep_kinds]
+        if not rs:  # --from-partial: not run yet
+            continue
         agg[label] = {
             "method": fam,
             "settings": st,
@@ -310,8 +319,8 @@ def main(argv: list[str] | None = None) -> int:
     reach = [v for v in agg.values() if v["method"] == "polysft" and v["ratio"] <= vbest["ratio"]]
     t_reach = min((v["cpu_seconds"] for v in reach), default=float("nan"))
     # per-sequence targets of the base PolySfT configuration
-    base_rows = [r for r in results if r["config"] == "polysft base"]
     vert_rows = {r["kind"]: r for r in results if r["config"] == "vertex base"}
+    base_rows = [r for r in results if r["config"] == "polysft base" and r["kind"] in vert_rows]
     targets = {
         "per_sequence": [
             {
