@@ -260,7 +260,7 @@ def height_frame(P, q, nbr_row, dist_row, kuse, uv, z, valid, b, R, ob, lam, a, 
 
 
 def _height_frames_py(P, qidx, nbr, dist, kuse, uv, z, valid, R, count, radius):
-    """:func:`height_frame` of every query (rows of ``nbr``), in parallel chunks."""
+    """:func:`height_frame` of every query (rows of ``nbr``; ``kuse (Q,)`` rows each)."""
     Q = nbr.shape[0]
     lam = np.empty((Q, 3))
     nchunks = (Q + _CHUNK - 1) // _CHUNK
@@ -268,7 +268,7 @@ def _height_frames_py(P, qidx, nbr, dist, kuse, uv, z, valid, R, count, radius):
         a = np.empty((3, 3))
         v = np.empty((3, 3))
         for i in range(ch * _CHUNK, min(Q, (ch + 1) * _CHUNK)):
-            c, r = height_frame(P, qidx[i], nbr[i], dist[i], kuse, uv, z, valid, i, R, i, lam,
+            c, r = height_frame(P, qidx[i], nbr[i], dist[i], kuse[i], uv, z, valid, i, R, i, lam,
                                 a, v)
             count[i] = c
             radius[i] = r

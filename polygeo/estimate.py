@@ -68,7 +68,7 @@ __all__ = [
 #: Neighbour counts tried by ``k="auto"`` (besides the point itself; capped by the data).
 AUTO_K_CANDIDATES = (12, 24, 48, 96, 192, 384)
 #: Width (in standard deviations) of the confidence intervals of ``k="auto"``.
-AUTO_K_GAMMA = 2.0
+AUTO_K_GAMMA = 2.5
 #: Neighbours whose automatic sizes are pooled (median) per point by ``k="auto"``.
 AUTO_K_SMOOTH = 24
 #: Jet orders tried by ``order="auto"``.
@@ -266,7 +266,6 @@ def _auto_k_py(P, qsrc, qdst, nbr, dist, sizes, kframe, order, max_cond, interp,
         st_val = np.empty((S, 3))
         st_g = np.empty((S, 3))
         st_cf = np.empty((S, M))
-        s2 = np.empty(S)
         scratch = fit_scratch(order, K)
         for i in range(c * _FUSED_CHUNK, min(Q, (c + 1) * _FUSED_CHUNK)):
             o = qdst[i]
@@ -349,18 +348,22 @@ def _auto_k_py(P, qsrc, qdst, nbr, dist, sizes, kframe, order, max_cond, interp,
                 ns += 1
                 if si >= S:
                     break
-            # pooled noise level: truncation only inflates a fit's residual, so the smallest
-            # residual variance among fits with enough degrees of freedom estimates the noise
-            nv = 0
-            for t in range(ns):
-                if st_dof[t] >= min_dof or (st_dof[t] > 0 and t == ns - 1 and nv == 0):
-                    s2[nv] = st_rss[t] / st_dof[t]
-                    nv += 1
-            sig2 = np.median(s2[:nv]) if nv > 0 else 0.0
+            # noise level at step t: the mean residual variance of the fits so far that have
+            # at least min_dof degrees of freedom (of the first well-posed one before them)
             chosen = -1
             lo_u = lo_v = lo_h = -math.inf
             hi_u = hi_v = hi_h = math.inf
+            s2sum = 0.0
+            s2n = 0
+            sig2 = 0.0
             for t in range(ns):
+                if st_dof[t] >= min_dof or (s2n == 0 and st_dof[t] > 0):
+                    if st_dof[t] >= min_dof and s2n > 0 and t > 0 and st_dof[t - 1] < min_dof:
+                        s2sum = 0.0  # drop the small-sample placeholder
+                        s2n = 0
+                    s2sum += st_rss[t] / st_dof[t]
+                    s2n += 1
+                    sig2 = s2sum / s2n
                 sd_u = gamma * math.sqrt(sig2 * st_g[t, 0])
                 sd_v = gamma * math.sqrt(sig2 * st_g[t, 1])
                 sd_h = gamma * math.sqrt(sig2 * st_g[t, 2])
@@ -413,7 +416,10 @@ _PARALLEL_MIN = 4096
 
 
 class _Local:
-    """Height coordinates of a chunk of neighbourhoods (NumPy, float64)."""
+    """Height coordinates of a chunk of neighbourhoods (NumPy, float64).
+
+    ``kuse``: rows of ``nbr`` used, one for all or one per query.
+    """
 
     def __init__(self, P, qidx, nbr, dist, kuse):
         Q, K = nbr.shape
@@ -424,8 +430,9 @@ class _Local:
         self.count = np.zeros(Q, dtype=np.int64)
         self.radius = np.zeros(Q)
         if Q:
+            ku = np.broadcast_to(np.asarray(kuse, dtype=np.int64), (Q,)).copy()
             kernel = height_frames_par if Q >= _PARALLEL_MIN else height_frames_ser
-            kernel(P, qidx, nbr, dist, int(kuse), self.uv, self.z, self.valid, self.R,
+            kernel(P, qidx, nbr, dist, ku, self.uv, self.z, self.valid, self.R,
                    self.count, self.radius)
 
 
@@ -617,14 +624,15 @@ def differential_quantities(
         (PCA of the candidate nearest ``4 M`` points), moments accumulated along the sorted
         neighbours so that each candidate costs one small solve; intervals ``value +-
         AUTO_K_GAMMA * sd`` on the slopes ``a10, a01`` and on ``H``, with ``sd = sigma
-        sqrt(G_ii)`` (``G`` the inverse moment matrix, ``sigma^2`` the median of ``RSS / (n -
-        M)`` over the candidates with at least ``3 M`` degrees of freedom); the per-point
-        choices are then pooled (geometric median over the ``AUTO_K_SMOOTH`` nearest
-        neighbours) and each point is refitted at the pooled size in its own PCA frame.
-        Measured (torus, 20k vertices, order 2; median normal error / median relative error
-        of H): 0.1 % noise 0.67 deg / 0.08 (best fixed k: 0.66 deg at k = 200, 0.064 at
-        k = 100), 1 % noise 5.6 deg / 0.38 (best fixed: 5.4 deg / 0.18 at k = 400), clean
-        data 0.05 deg / 0.008 (k = 20: 0.04 deg / 0.008).
+        sqrt(G_ii)`` (``G`` the inverse moment matrix; ``sigma^2`` at each step the mean of
+        ``RSS / (n - M)`` over the candidates so far with at least ``3 M`` degrees of freedom);
+        the per-point choices are then pooled (geometric median over the ``AUTO_K_SMOOTH``
+        nearest neighbours) and each point is refitted at the pooled size in its own PCA
+        frame. With ``order="auto"`` the sizes are chosen at the lowest order, then the order
+        test runs at those sizes. Measured (torus, 20k vertices, order 2; median normal error
+        / median relative error of H): clean 0.039 deg / 0.0068 (k = 20: 0.042 deg / 0.008),
+        0.1 % noise 0.73 deg / 0.096 (best fixed k: 0.66 deg at k = 200, 0.064 at k = 100),
+        1 % noise 5.7 deg / 0.40 (best fixed: 5.4 deg / 0.18 at k = 400).
     radius : float, optional
         Use all neighbours within this distance (L) instead of k nearest (``k`` then caps
         the count at ``k + 1`` points, nearest kept, unless ``k="auto"``).
@@ -794,8 +802,8 @@ def differential_quantities(
     torch_parts: list[tuple[np.ndarray, Any, Any, Any]] = []
 
     # k="auto" with one order: nested neighbourhoods of one k-NN list (compiled)
-    fast_auto = (auto_k and len(orders) == 1 and weights is None and radius is None
-                 and ring is None and not use_torch)
+    fast_auto = (auto_k and weights is None and radius is None and ring is None
+                 and not use_torch)
     if auto_k:
         batch_size = min(batch_size, max(1024, 4_000_000 // max(kq, 1)))
     # visit the points in grid-cell order: neighbouring queries share neighbours (cache)
@@ -846,6 +854,8 @@ def differential_quantities(
         if auto_k and radius is None and ring is None:
             sizes = sorted({min(c, kq) for c in kc})
         if auto_k and fast_auto:
+            # sizes chosen at the lowest order; with several orders, the F-test then runs at
+            # the chosen sizes (general path below)
             o_ = orders[0]
             e = jets._exponents_np(o_)
             sz = np.array(sorted({min(c, nbr.shape[1]) for c in kc}), dtype=np.int64)
@@ -861,6 +871,9 @@ def differential_quantities(
             # per-point choices are noisy: refit at the (geometric) median choice of the
             # point's nearest neighbours in this chunk, with that neighbourhood's own frame
             kuse = _smooth_sizes(q, n_nb[q], nbr, n, AUTO_K_SMOOTH)
+            if len(orders) > 1:
+                sizes = [kuse]
+        if auto_k and fast_auto and len(orders) == 1:
             kernel = _fused_par if q.size >= _PARALLEL_MIN // 8 else _fused_ser
             kernel(P, np.ascontiguousarray(rep[q]), np.ascontiguousarray(q),
                    np.ascontiguousarray(nbr), np.ascontiguousarray(dist), kuse, o_, False,
