@@ -15,6 +15,8 @@ import math
 import numba as nb
 import numpy as np
 
+from ._numba_util import njit_pair
+
 __all__ = ["origin_geometry", "origin_geometry_par", "origin_geometry_ser", "jet_geometry"]
 
 
@@ -82,8 +84,7 @@ def _origin_geometry_py(coef, R, normal, d1, d2, kk):
 
 
 # parallel variant for large batches; the serial one avoids the thread-pool start-up cost
-origin_geometry_par = nb.njit(cache=True, parallel=True)(_origin_geometry_py)
-origin_geometry_ser = nb.njit(cache=True)(_origin_geometry_py)
+origin_geometry_par, origin_geometry_ser = njit_pair(_origin_geometry_py)
 _PARALLEL_MIN = 4096
 
 

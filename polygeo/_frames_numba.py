@@ -13,6 +13,8 @@ import math
 import numba as nb
 import numpy as np
 
+from ._numba_util import njit_pair
+
 __all__ = ["pca_frames_numba", "height_frame", "height_frames_par", "height_frames_ser"]
 
 _CHUNK = 512
@@ -274,8 +276,7 @@ def _height_frames_py(P, qidx, nbr, dist, kuse, uv, z, valid, R, count, radius):
             radius[i] = r
 
 
-height_frames_par = nb.njit(cache=True, parallel=True)(_height_frames_py)
-height_frames_ser = nb.njit(cache=True)(_height_frames_py)
+height_frames_par, height_frames_ser = njit_pair(_height_frames_py)
 
 
 def pca_frames_numba(P, w, mask, center, ref):

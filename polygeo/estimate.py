@@ -51,6 +51,7 @@ from . import jets
 from ._diffgeo_numba import jet_geometry, origin_geometry
 from ._frames_numba import height_frame, height_frames_par, height_frames_ser
 from ._jets_numba import _factor, _solve, accumulate_sample, fit_item, fit_scratch
+from ._numba_util import njit_pair
 from ._validate import as_tensor, check_choice, check_int, check_positive, check_shape
 from .neighbors import PointIndex, mesh_k_ring
 from .status import Status
@@ -405,10 +406,8 @@ def _auto_k_py(P, qsrc, qdst, nbr, dist, sizes, kframe, order, max_cond, interp,
                     frame[o, r, cc_] = Rl[0, r, cc_]
 
 
-_auto_k_par = nb.njit(cache=True, parallel=True)(_auto_k_py)
-_auto_k_ser = nb.njit(cache=True)(_auto_k_py)
-_fused_par = nb.njit(cache=True, parallel=True)(_fused_py)
-_fused_ser = nb.njit(cache=True)(_fused_py)
+_auto_k_par, _auto_k_ser = njit_pair(_auto_k_py)
+_fused_par, _fused_ser = njit_pair(_fused_py)
 _PARALLEL_MIN = 4096
 
 

@@ -21,6 +21,7 @@ import scipy.sparse as sp
 import torch
 from scipy.spatial import cKDTree
 
+from ._numba_util import njit_pair
 from ._validate import (
     as_tensor,
     check_choice,
@@ -207,8 +208,7 @@ def _grid_query_py(P, order, cstart, lo, h, nx, ny, nz, Q, qorder, k, out_i, out
             out_i[qi, j] = -1
 
 
-_grid_query_par = nb.njit(cache=True, parallel=True)(_grid_query_py)
-_grid_query_ser = nb.njit(cache=True)(_grid_query_py)
+_grid_query_par, _grid_query_ser = njit_pair(_grid_query_py)
 
 
 class _Grid:
