@@ -176,18 +176,19 @@ def _fused_py(P, qsrc, qdst, nbr, dist, kuse, order, gaussian, max_cond, interp,
     M = coeffs.shape[1]
     nchunks = (Q + _FUSED_CHUNK - 1) // _FUSED_CHUNK
     for c in nb.prange(nchunks):
-        uv = np.empty((_FUSED_CHUNK, K, 2))
-        z = np.empty((_FUSED_CHUNK, K))
-        valid = np.empty((_FUSED_CHUNK, K), dtype=np.bool_)
-        w = np.ones((_FUSED_CHUNK, K) if gaussian else (1, 1))
-        Rl = np.empty((_FUSED_CHUNK, 3, 3))
-        lam = np.empty((_FUSED_CHUNK, 3))
-        cf = np.empty((_FUSED_CHUNK, M))
+        # one item's work arrays, reused (row 0) so that they stay in L1
+        uv = np.empty((1, K, 2))
+        z = np.empty((1, K))
+        valid = np.empty((1, K), dtype=np.bool_)
+        w = np.ones((1, K))
+        Rl = np.empty((1, 3, 3))
+        lam = np.empty((1, 3))
+        cf = np.empty((1, M))
         a = np.empty((3, 3))
         v = np.empty((3, 3))
         scratch = fit_scratch(order, K)
         for i in range(c * _FUSED_CHUNK, min(Q, (c + 1) * _FUSED_CHUNK)):
-            b = i - c * _FUSED_CHUNK
+            b = 0
             o = qdst[i]
             _, rad = height_frame(P, qsrc[i], nbr[i], dist[i], kuse[i], uv, z, valid, b, Rl, b,
                                   lam, a, v)
