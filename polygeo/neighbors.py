@@ -211,6 +211,63 @@ def _grid_query_py(P, order, cstart, lo, h, nx, ny, nz, Q, qorder, k, out_i, out
 _grid_query_par, _grid_query_ser = njit_pair(_grid_query_py)
 
 
+@nb.njit(cache=True)
+def _cell_keys(pts, lo, h, nx, ny, nz):
+    """Flat cell index of each point (x fastest), as ``min(int((p - lo) / h), dim - 1)``."""
+    n = pts.shape[0]
+    key = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        ix = min(int((pts[i, 0] - lo[0]) / h), nx - 1)
+        iy = min(int((pts[i, 1] - lo[1]) / h), ny - 1)
+        iz = min(int((pts[i, 2] - lo[2]) / h), nz - 1)
+        key[i] = ix + nx * (iy + ny * iz)
+    return key
+
+
+@nb.njit(cache=True)
+def _counting_sort(pts, key, size):
+    """Stable order of the points by cell, cell start offsets and the sorted points."""
+    n = key.shape[0]
+    cstart = np.zeros(size + 1, dtype=np.int64)
+    for i in range(n):
+        cstart[key[i] + 1] += 1
+    for c in range(size):
+        cstart[c + 1] += cstart[c]
+    fill = cstart[:-1].copy()
+    order = np.empty(n, dtype=np.int64)
+    sorted_pts = np.empty((n, 3))
+    for i in range(n):
+        s = fill[key[i]]
+        fill[key[i]] = s + 1
+        order[s] = i
+        sorted_pts[s, 0] = pts[i, 0]
+        sorted_pts[s, 1] = pts[i, 1]
+        sorted_pts[s, 2] = pts[i, 2]
+    return order, cstart, sorted_pts
+
+
+@nb.njit(cache=True)
+def _query_order(q, lo, h, nx, ny, nz):
+    """Queries ordered by the grid cell containing (or nearest to) them; stable."""
+    n = q.shape[0]
+    key = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        ix = int(min(max((q[i, 0] - lo[0]) / h, 0.0), nx - 1.0))
+        iy = int(min(max((q[i, 1] - lo[1]) / h, 0.0), ny - 1.0))
+        iz = int(min(max((q[i, 2] - lo[2]) / h, 0.0), nz - 1.0))
+        key[i] = ix + nx * (iy + ny * iz)
+    fill = np.zeros(nx * ny * nz + 1, dtype=np.int64)
+    for i in range(n):
+        fill[key[i] + 1] += 1
+    for c in range(nx * ny * nz):
+        fill[c + 1] += fill[c]
+    order = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        order[fill[key[i]]] = i
+        fill[key[i]] += 1
+    return order
+
+
 class _Grid:
     """Uniform grid over finite points, sized for about ``ppc`` points per occupied cell."""
 
@@ -232,8 +289,7 @@ class _Grid:
             if float(np.prod(dims.astype(np.float64))) > 8.0 * n + 64:
                 h *= 1.26
                 continue
-            ix = np.minimum(((pts - lo) / h).astype(np.int64), dims - 1)
-            key = ix[:, 0] + dims[0] * (ix[:, 1] + dims[1] * ix[:, 2])
+            key = _cell_keys(pts, lo, h, int(dims[0]), int(dims[1]), int(dims[2]))
             occ = n / max(int(np.count_nonzero(np.bincount(key))), 1)
             if occ >= ppc / 2:
                 break
@@ -241,11 +297,9 @@ class _Grid:
         if key is None or occ > 16 * ppc:
             return  # very uneven density (outliers): the k-d tree is safer
         size = int(np.prod(dims))
-        self.order = np.argsort(key, kind="stable")
-        self.cstart = np.zeros(size + 1, dtype=np.int64)
-        np.cumsum(np.bincount(key, minlength=size), out=self.cstart[1:])
+        # a stable counting sort by cell (same order as a stable argsort of the keys)
+        self.order, self.cstart, self.sorted_pts = _counting_sort(pts, key, size)
         self.lo, self.h, self.dims = lo, h, dims
-        self.sorted_pts = np.ascontiguousarray(pts[self.order])
         self.ok = True
 
     def query(self, q: np.ndarray, k: int, parallel: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -254,11 +308,9 @@ class _Grid:
         out_d = np.empty((nq, k))
         if nq == 0:
             return out_i, out_d
-        qx = np.clip(((q - self.lo) / self.h).astype(np.int64), 0, self.dims - 1)
-        qkey = qx[:, 0] + self.dims[0] * (qx[:, 1] + self.dims[1] * qx[:, 2])
-        qorder = np.argsort(qkey, kind="stable")
-        fn = _grid_query_par if parallel else _grid_query_ser
         nx, ny, nz = (int(d) for d in self.dims)
+        qorder = _query_order(q, self.lo, self.h, nx, ny, nz)
+        fn = _grid_query_par if parallel else _grid_query_ser
         fn(self.sorted_pts, self.order, self.cstart, self.lo, self.h, nx, ny, nz, q, qorder, k,
            out_i, out_d)
         return out_i, out_d
