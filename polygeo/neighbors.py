@@ -132,6 +132,8 @@ def _put_self_first(index: np.ndarray, dist: np.ndarray, self_idx: np.ndarray) -
 
 # --------------------------------------------------------------------------- uniform grid k-NN
 
+_GRID_CHUNK = 64  # queries per parallel task
+
 
 def _grid_query_py(P, order, cstart, lo, h, nx, ny, nz, Q, qorder, k, out_i, out_d):
     """Exact k-NN by expanding shells of cells of a uniform grid.
@@ -140,72 +142,78 @@ def _grid_query_py(P, order, cstart, lo, h, nx, ny, nz, Q, qorder, k, out_i, out
 
     The search stops after shell r once the k-th best distance is within r * h plus the
     query's distance to its own cell's faces: every unvisited point is farther than that.
+    The sorted best-k list lives in small per-task arrays (in L1) and is copied out once.
     """
     nq = Q.shape[0]
     maxr = max(nx, max(ny, nz))
-    for t in nb.prange(nq):
-        qi = qorder[t]
-        qx, qy, qz = Q[qi, 0], Q[qi, 1], Q[qi, 2]
-        fx = (qx - lo[0]) / h
-        fy = (qy - lo[1]) / h
-        fz = (qz - lo[2]) / h
-        cx = min(max(int(fx), 0), nx - 1)
-        cy = min(max(int(fy), 0), ny - 1)
-        cz = min(max(int(fz), 0), nz - 1)
-        bx = min(fx - cx, cx + 1 - fx)
-        by = min(fy - cy, cy + 1 - fy)
-        bz = min(fz - cz, cz + 1 - fz)
-        b0 = max(min(bx, min(by, bz)), 0.0) * h
-        cnt = 0
-        worst = np.inf
-        for r in range(maxr + 1):
-            z0 = max(cz - r, 0)
-            z1 = min(cz + r, nz - 1)
-            y0 = max(cy - r, 0)
-            y1 = min(cy + r, ny - 1)
-            for z in range(z0, z1 + 1):
-                for y in range(y0, y1 + 1):
-                    edge = abs(z - cz) == r or abs(y - cy) == r
-                    x = cx - r
-                    while x <= cx + r:
-                        if x >= 0 and x < nx:
-                            c = x + nx * (y + ny * z)
-                            for s in range(cstart[c], cstart[c + 1]):
-                                ex = P[s, 0] - qx  # P is sorted by cell: contiguous reads
-                                ey = P[s, 1] - qy
-                                ez = P[s, 2] - qz
-                                d2 = ex * ex + ey * ey + ez * ez
-                                if cnt < k:
-                                    j = cnt
-                                    cnt += 1
-                                elif d2 < worst:
-                                    j = k - 1
-                                else:
-                                    continue
-                                p = order[s]
-                                while j > 0 and (
-                                    out_d[qi, j - 1] > d2
-                                    or (out_d[qi, j - 1] == d2 and out_i[qi, j - 1] > p)
-                                ):
-                                    out_d[qi, j] = out_d[qi, j - 1]
-                                    out_i[qi, j] = out_i[qi, j - 1]
-                                    j -= 1
-                                out_d[qi, j] = d2
-                                out_i[qi, j] = p
-                                if cnt == k:
-                                    worst = out_d[qi, k - 1]
-                        if edge or r == 0:
-                            x += 1
-                        else:
-                            x += 2 * r
-            bound = r * h + b0
-            if cnt == k and worst <= bound * bound:
-                break
-        for j in range(cnt):
-            out_d[qi, j] = math.sqrt(out_d[qi, j])
-        for j in range(cnt, k):
-            out_d[qi, j] = np.inf
-            out_i[qi, j] = -1
+    nchunk = (nq + _GRID_CHUNK - 1) // _GRID_CHUNK
+    for ch in nb.prange(nchunk):
+        ld = np.empty(k)
+        li = np.empty(k, dtype=np.int64)
+        for t in range(ch * _GRID_CHUNK, min(nq, (ch + 1) * _GRID_CHUNK)):
+            qi = qorder[t]
+            qx, qy, qz = Q[qi, 0], Q[qi, 1], Q[qi, 2]
+            fx = (qx - lo[0]) / h
+            fy = (qy - lo[1]) / h
+            fz = (qz - lo[2]) / h
+            cx = min(max(int(fx), 0), nx - 1)
+            cy = min(max(int(fy), 0), ny - 1)
+            cz = min(max(int(fz), 0), nz - 1)
+            bx = min(fx - cx, cx + 1 - fx)
+            by = min(fy - cy, cy + 1 - fy)
+            bz = min(fz - cz, cz + 1 - fz)
+            b0 = max(min(bx, min(by, bz)), 0.0) * h
+            cnt = 0
+            worst = np.inf
+            for r in range(maxr + 1):
+                z0 = max(cz - r, 0)
+                z1 = min(cz + r, nz - 1)
+                y0 = max(cy - r, 0)
+                y1 = min(cy + r, ny - 1)
+                for z in range(z0, z1 + 1):
+                    for y in range(y0, y1 + 1):
+                        edge = abs(z - cz) == r or abs(y - cy) == r
+                        x = cx - r
+                        while x <= cx + r:
+                            if x >= 0 and x < nx:
+                                c = x + nx * (y + ny * z)
+                                for s in range(cstart[c], cstart[c + 1]):
+                                    ex = P[s, 0] - qx  # P is sorted by cell: contiguous reads
+                                    ey = P[s, 1] - qy
+                                    ez = P[s, 2] - qz
+                                    d2 = ex * ex + ey * ey + ez * ez
+                                    if cnt < k:
+                                        j = cnt
+                                        cnt += 1
+                                    elif d2 < worst:
+                                        j = k - 1
+                                    else:
+                                        continue
+                                    p = order[s]
+                                    while j > 0 and (
+                                        ld[j - 1] > d2
+                                        or (ld[j - 1] == d2 and li[j - 1] > p)
+                                    ):
+                                        ld[j] = ld[j - 1]
+                                        li[j] = li[j - 1]
+                                        j -= 1
+                                    ld[j] = d2
+                                    li[j] = p
+                                    if cnt == k:
+                                        worst = ld[k - 1]
+                            if edge or r == 0:
+                                x += 1
+                            else:
+                                x += 2 * r
+                bound = r * h + b0
+                if cnt == k and worst <= bound * bound:
+                    break
+            for j in range(cnt):
+                out_d[qi, j] = math.sqrt(ld[j])
+                out_i[qi, j] = li[j]
+            for j in range(cnt, k):
+                out_d[qi, j] = np.inf
+                out_i[qi, j] = -1
 
 
 _grid_query_par, _grid_query_ser = njit_pair(_grid_query_py)
