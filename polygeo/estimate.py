@@ -51,7 +51,7 @@ from . import jets
 from ._diffgeo_numba import jet_geometry, origin_geometry
 from ._frames_numba import height_frame, height_frames_par, height_frames_ser
 from ._jets_numba import _factor, _solve, accumulate_sample, fit_item, fit_scratch
-from ._numba_util import njit_pair
+from ._numba_util import finite_rows, njit_pair
 from ._validate import as_tensor, check_choice, check_int, check_positive, check_shape
 from .neighbors import PointIndex, mesh_k_ring
 from .status import Status
@@ -748,7 +748,7 @@ def differential_quantities(
         raise ValueError("backend: the differentiable path supports fixed k and order only")
 
     P = np.ascontiguousarray(pts_t.detach().cpu().to(torch.float64).numpy())
-    finite = np.isfinite(P).all(axis=1)
+    finite = finite_rows(P)
     f_np = _faces_np(faces, n) if faces is not None else None
     ref = None
     if normals is not None:

@@ -21,7 +21,7 @@ import scipy.sparse as sp
 import torch
 from scipy.spatial import cKDTree
 
-from ._numba_util import njit_pair
+from ._numba_util import finite_rows, njit_pair
 from ._validate import (
     as_tensor,
     check_choice,
@@ -150,6 +150,10 @@ def _grid_query_py(P, order, cstart, lo, h, nx, ny, nz, Q, qorder, k, out_i, out
     for ch in nb.prange(nchunk):
         ld = np.empty(k)
         li = np.empty(k, dtype=np.int64)
+        # previous query of this task and its k-th distance: by the triangle inequality the
+        # k-th distance of the next query is at most kprev + |q - qprev| (a pruning bound)
+        px = py = pz = 0.0
+        kprev = -1.0
         for t in range(ch * _GRID_CHUNK, min(nq, (ch + 1) * _GRID_CHUNK)):
             qi = qorder[t]
             qx, qy, qz = Q[qi, 0], Q[qi, 1], Q[qi, 2]
@@ -163,60 +167,92 @@ def _grid_query_py(P, order, cstart, lo, h, nx, ny, nz, Q, qorder, k, out_i, out
             by = min(fy - cy, cy + 1 - fy)
             bz = min(fz - cz, cz + 1 - fz)
             b0 = max(min(bx, min(by, bz)), 0.0) * h
+            cap = np.inf
+            if kprev >= 0.0:
+                dq = math.sqrt((qx - px) ** 2 + (qy - py) ** 2 + (qz - pz) ** 2)
+                cap = ((kprev + dq) * (1.0 + 1e-9)) ** 2 + 1e-300
             cnt = 0
-            worst = np.inf
-            for r in range(maxr + 1):
-                z0 = max(cz - r, 0)
-                z1 = min(cz + r, nz - 1)
-                y0 = max(cy - r, 0)
-                y1 = min(cy + r, ny - 1)
-                for z in range(z0, z1 + 1):
-                    for y in range(y0, y1 + 1):
-                        edge = abs(z - cz) == r or abs(y - cy) == r
-                        x = cx - r
-                        while x <= cx + r:
-                            if x >= 0 and x < nx:
-                                c = x + nx * (y + ny * z)
-                                for s in range(cstart[c], cstart[c + 1]):
-                                    ex = P[s, 0] - qx  # P is sorted by cell: contiguous reads
-                                    ey = P[s, 1] - qy
-                                    ez = P[s, 2] - qz
-                                    d2 = ex * ex + ey * ey + ez * ez
-                                    if cnt < k:
-                                        j = cnt
-                                        cnt += 1
-                                    elif d2 < worst:
-                                        j = k - 1
-                                    else:
-                                        continue
-                                    p = order[s]
-                                    while j > 0 and (
-                                        ld[j - 1] > d2
-                                        or (ld[j - 1] == d2 and li[j - 1] > p)
-                                    ):
-                                        ld[j] = ld[j - 1]
-                                        li[j] = li[j - 1]
-                                        j -= 1
-                                    ld[j] = d2
-                                    li[j] = p
-                                    if cnt == k:
-                                        worst = ld[k - 1]
-                            if edge or r == 0:
-                                x += 1
-                            else:
-                                x += 2 * r
-                bound = r * h + b0
-                if cnt == k and worst <= bound * bound:
-                    break
+            for attempt in range(2):
+                if attempt == 1:
+                    if cnt == k or cap == np.inf:
+                        break
+                    cap = np.inf  # rounding defeated the bound: search again without it
+                    cnt = 0
+                worst = cap  # while cnt < k: the pruning bound, then the k-th best
+                for r in range(maxr + 1):
+                    z0 = max(cz - r, 0)
+                    z1 = min(cz + r, nz - 1)
+                    y0 = max(cy - r, 0)
+                    y1 = min(cy + r, ny - 1)
+                    for z in range(z0, z1 + 1):
+                        for y in range(y0, y1 + 1):
+                            edge = abs(z - cz) == r or abs(y - cy) == r
+                            x = cx - r
+                            while x <= cx + r:
+                                if x >= 0 and x < nx:
+                                    c = x + nx * (y + ny * z)
+                                    for s in range(cstart[c], cstart[c + 1]):
+                                        ex = P[s, 0] - qx  # P sorted by cell: contiguous reads
+                                        ey = P[s, 1] - qy
+                                        ez = P[s, 2] - qz
+                                        d2 = ex * ex + ey * ey + ez * ez
+                                        if d2 > worst:
+                                            continue
+                                        p = order[s]
+                                        if cnt < k:
+                                            j = cnt
+                                            cnt += 1
+                                        elif d2 < worst or p < li[k - 1]:
+                                            j = k - 1
+                                        else:
+                                            continue
+                                        while j > 0 and (
+                                            ld[j - 1] > d2
+                                            or (ld[j - 1] == d2 and li[j - 1] > p)
+                                        ):
+                                            ld[j] = ld[j - 1]
+                                            li[j] = li[j - 1]
+                                            j -= 1
+                                        ld[j] = d2
+                                        li[j] = p
+                                        if cnt == k:
+                                            worst = ld[k - 1]
+                                if edge or r == 0:
+                                    x += 1
+                                else:
+                                    x += 2 * r
+                    bound = r * h + b0
+                    if cnt == k and worst <= bound * bound:
+                        break
             for j in range(cnt):
                 out_d[qi, j] = math.sqrt(ld[j])
                 out_i[qi, j] = li[j]
             for j in range(cnt, k):
                 out_d[qi, j] = np.inf
                 out_i[qi, j] = -1
+            if cnt == k:
+                px, py, pz = qx, qy, qz
+                kprev = math.sqrt(ld[k - 1])
+            else:
+                kprev = -1.0
 
 
 _grid_query_par, _grid_query_ser = njit_pair(_grid_query_py)
+
+
+@nb.njit(cache=True)
+def _bbox(pts):
+    """Per-axis minimum and maximum of the finite ``(N, 3)`` points (as ``min(0)``, ``max(0)``)."""
+    lo = pts[0].copy()
+    hi = pts[0].copy()
+    for i in range(1, pts.shape[0]):
+        for j in range(3):
+            v = pts[i, j]
+            if v < lo[j]:
+                lo[j] = v
+            if v > hi[j]:
+                hi[j] = v
+    return lo, hi
 
 
 @nb.njit(cache=True)
@@ -284,8 +320,8 @@ class _Grid:
         self.ok = False
         if n == 0:
             return
-        lo = pts.min(0)
-        ext = np.maximum(pts.max(0) - lo, 1e-300)
+        lo, hi = _bbox(pts)
+        ext = np.maximum(hi - lo, 1e-300)
         # a surface in a cube of G cells occupies about G^(2/3) of them
         g = min((n / ppc) ** 1.5, 4.0 * n + 8)
         h = float((np.prod(ext) / g) ** (1 / 3))
@@ -346,7 +382,7 @@ class PointIndex:
 
     def __init__(self, points: np.ndarray, method: str = "auto", ppc: float = 8.0) -> None:
         self.points = points
-        fin = np.isfinite(points).all(axis=1)
+        fin = finite_rows(points)
         self.n_finite = int(fin.sum())
         self._all_finite = self.n_finite == points.shape[0]
         self._map = None if self._all_finite else np.flatnonzero(fin)
@@ -391,7 +427,7 @@ class PointIndex:
         qn = queries.shape[0]
         if k == 0 or self.n_finite == 0 or qn == 0:
             return np.full((qn, k), -1, dtype=np.int64), np.full((qn, k), np.inf)
-        fin_q = np.isfinite(queries).all(axis=1)
+        fin_q = finite_rows(queries)
         all_q = bool(fin_q.all())
         kk = min(k, self.n_finite)
         q_sel = queries if all_q else queries[fin_q]
