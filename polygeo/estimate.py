@@ -798,7 +798,9 @@ def differential_quantities(
     resid = np.full(n, np.nan)
     frame = np.full((n, 3, 3), np.nan)
     coeffs = np.zeros((n, M))
-    graph = np.full((n, k_graph), -1, dtype=np.int64)
+    # k-NN graph for the orientation (not needed, hence not filled, with orient="none")
+    need_graph = orient != "none"
+    graph = np.full((n if need_graph else 0, k_graph), -1, dtype=np.int64)
     torch_parts: list[tuple[np.ndarray, Any, Any, Any]] = []
 
     # k="auto" with one order: nested neighbourhoods of one k-NN list (compiled)
@@ -837,7 +839,8 @@ def differential_quantities(
                 n_distinct = int((rep[finite] == np.flatnonzero(finite)).sum())
                 kq = min(kmax, max(n_distinct, 1))
                 nbr, dist = index.query(P[q], kq, workers=wk, upper=upper, self_index=rep[q])
-        graph[q, : min(k_graph, nbr.shape[1])] = nbr[:, :k_graph]
+        if need_graph:
+            graph[q, : min(k_graph, nbr.shape[1])] = nbr[:, :k_graph]
         if use_torch:
             local = _Local(P, rep[q], nbr, dist, nbr.shape[1])
             w = _gaussian_weights(local) if weights == "gaussian" else None

@@ -434,7 +434,7 @@ class PointIndex:
         if self.grid is not None and not np.isfinite(upper) and kk <= 1024:
             # the grid kernel pads with -1 / inf itself and sees finite points only
             i, d = self.grid.query(np.ascontiguousarray(q_sel), kk, workers != 1)
-            missing = i < 0
+            missing = i < 0 if self._map is not None else None
         else:
             d, i = self.tree.query(q_sel, k=kk, workers=workers, distance_upper_bound=upper)
             d = np.asarray(d, dtype=np.float64).reshape(q_sel.shape[0], kk)
