@@ -137,8 +137,8 @@ def run_config(seq: Path, settings: dict, frames: int) -> dict:
     }
 
 
-def _job(job: tuple) -> dict:
-    label, fam, st, seq, kind, frames, threads = job
+def _worker_setup(threads: int) -> None:
+    """Thread counts of a worker process (torch and numba) and quiet warnings."""
     import torch
 
     torch.set_num_threads(threads)
@@ -149,22 +149,18 @@ def _job(job: tuple) -> dict:
     except (ImportError, ValueError):
         pass
     warnings.simplefilter("ignore")
+
+
+def _job(job: tuple) -> dict:
+    label, fam, st, seq, kind, frames, threads = job
+    _worker_setup(threads)
     r = run_config(Path(seq), st, frames)
     return {"config": label, "method": fam, "settings": st, "kind": kind, **r}
 
 
 def _mem_job(job: tuple) -> dict:
     data, frames, threads = job
-    import torch
-
-    torch.set_num_threads(threads)
-    try:
-        import numba
-
-        numba.set_num_threads(threads)
-    except (ImportError, ValueError):
-        pass
-    warnings.simplefilter("ignore")
+    _worker_setup(threads)
     return memory_run(Path(data), frames)
 
 
@@ -230,16 +226,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     a = ap.parse_args(argv)
 
+    _worker_setup(a.threads)
     import torch
-
-    torch.set_num_threads(a.threads)
-    try:
-        import numba
-
-        numba.set_num_threads(a.threads)
-    except (ImportError, ValueError):
-        pass
-    warnings.simplefilter("ignore")
     from tqdm import tqdm
 
     quick = a.quick
