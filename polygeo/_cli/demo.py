@@ -55,7 +55,8 @@ def jets_table(n_points: int, k: int) -> list[dict]:
     # warm-up: the first call in a fresh environment compiles the kernels (tens of seconds);
     # keep that out of the points/s column
     warm = synthetic.torus(max(4 * k, 200), R=1.0, r=0.4, seed=1)
-    differential_quantities(warm.points, k=k, order=2, normals=warm.normals)
+    for order in (1, 2, 3, 4):
+        differential_quantities(warm.points, k=k, order=order, normals=warm.normals)
     rows = []
     for noise in (0.0, 0.001, 0.01):
         sample = synthetic.torus(n_points, R=1.0, r=0.4, seed=0, noise=noise)
