@@ -260,15 +260,10 @@ def knn_normals(local: torch.Tensor, mask: torch.Tensor | None = None, k: int = 
         x = local.detach()
         d = torch.cdist(x, x).masked_fill(~mask[:, None, :], torch.inf)
         dist, idx = d.topk(kk, dim=-1, largest=False)  # (B, P, k)
-        w = torch.isfinite(dist).to(x.dtype)[..., None]  # valid neighbours
+        valid = torch.isfinite(dist)  # (B, P, k) valid neighbours
         nb = x[torch.arange(B, device=x.device)[:, None, None], idx]  # (B, P, k, 3)
-        cnt = w.sum(2).clamp_min(1.0)  # (B, P, 1)
-        mu = (nb * w).sum(2) / cnt
-        dv = (nb - mu[:, :, None, :]) * w
-        cov = dv.transpose(-1, -2) @ dv / cnt[..., None]
-        cov = cov + 1e-9 * torch.eye(3, dtype=x.dtype, device=x.device)
-        _, vec = torch.linalg.eigh(cov)
-        n = vec[..., 0]
+        frame = pca_frames(nb.reshape(B * P, kk, 3), mask=valid.reshape(B * P, kk))
+        n = frame.rotation[..., 2].reshape(B, P, 3).to(x.dtype)
         n = torch.where(n[..., 2:3] < 0, -n, n)
         return torch.where(mask[..., None], n, torch.zeros_like(n))
 
