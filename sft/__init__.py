@@ -21,7 +21,7 @@ Modules
 Example
 -------
 >>> from sft.optimize import SfTSettings, run_sft  # doctest: +SKIP
->>> res = run_sft("data/bend", "out/bend", SfTSettings(frame_period=150, patience=30))
+>>> res = run_sft("data/bend", "out/bend", SfTSettings(frame_period=200, patience=30))
 >>> res.summary["e_3d"], res.summary["e_3d_template"]
 
 Departures from the thesis (documented where they are set): parameters live in normalised

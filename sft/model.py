@@ -252,16 +252,11 @@ class JetTemplate:
         )
 
 
-def _rigid(x: torch.Tensor, frame: Orientation, rot: torch.Tensor, trans: torch.Tensor):
-    """Apply the rigid motion ``(R_c, T_c)`` expressed in the normalised global frame.
-
-    ``x`` (F, V, 3) camera coordinates -> ``O_g(R_c O_g^-1(x) + T_c)``.
-    """
+def _rigid_local(y: torch.Tensor, frame: Orientation, rot: torch.Tensor, trans: torch.Tensor):
+    """``O_g(R_c y + T_c)`` for ``y`` (F, V, 3) already in the normalised global frame."""
     Rc = axis_angle_to_matrix(rot)  # (F, 3, 3)
-    s, R, T = frame.s[0], frame.R[0], frame.T[0]
-    local = (x - T) @ R / s  # (F, V, 3)
-    moved = local @ Rc.transpose(-1, -2) + trans[:, None, :]
-    return s * (moved @ R.T) + T
+    moved = y @ Rc.transpose(-1, -2) + trans[:, None, :]
+    return frame.s[0] * (moved @ frame.R[0].T) + frame.T[0]
 
 
 class DeformationModel:
@@ -322,6 +317,13 @@ class JetModel(DeformationModel):
     k_b, k_bn : float
         Weights of the boundary-consistency term (eq. (51)): positions (normalised units) and
         normals ``(1 - cos)^2``; unused for one patch.
+    patch_rigid : bool
+        With several patches, give each patch its own rigid motion relative to the global
+        one: parameters ``p_rot`` ``(K, 3)`` (rotation vectors, radians, about the patch
+        origin) and ``p_trans`` ``(K, 3)`` (normalised global units), learning rate
+        ``lr_patch``. The boundary term is then what keeps the patches together. This lets
+        a template bend or roll further than a height graph over one plane can (a sheet
+        rolled by 200 degrees). Ignored for one patch.
     dtype : torch.dtype
         Dtype of the parameters and outputs (float32 by default: optimisation).
     """
@@ -337,6 +339,7 @@ class JetModel(DeformationModel):
         *,
         k_b: float = 1.0,
         k_bn: float = 0.1,
+        patch_rigid: bool = True,
         dtype: torch.dtype = torch.float32,
     ) -> None:
         self.template = template
@@ -347,7 +350,6 @@ class JetModel(DeformationModel):
         self.k_b, self.k_bn = float(k_b), float(k_bn)
         t = template
         self.scale = float(t.frame.s[0])
-        self._orient = t.orientation.to(dtype)
         self._frame = t.frame.to(dtype)
         self._coeffs = t.coeffs.to(dtype)
         self._uv = t.uv.to(dtype)
@@ -356,6 +358,14 @@ class JetModel(DeformationModel):
         self._slices = t.slices
         V = int(t.primary.shape[0])
         self._identity = bool(t.n_samples == V and torch.equal(t.primary, torch.arange(V)))
+        # patch frames expressed in the normalised global frame: y = A_k p + b_k
+        o, g = t.orientation, t.frame
+        Rg = g.R[0]
+        self._A = ((o.s / g.s[0])[:, None, None] * (Rg.T @ o.R)).to(dtype)  # (K, 3, 3)
+        self._b = ((o.T - g.T[0]) @ Rg / g.s[0]).to(dtype)  # (K, 3): patch origins
+        self.patch_rigid = bool(patch_rigid) and t.n_patches > 1
+        if self.patch_rigid:
+            self.groups = {**JetModel.groups, "p_rot": "lr_patch", "p_trans": "lr_patch"}
 
     @property
     def n_coeffs(self) -> int:
@@ -379,39 +389,59 @@ class JetModel(DeformationModel):
         """Zero offsets of one frame."""
         K, M, S = self.template.n_patches, self.n_coeffs, self.template.n_samples
         z = dict(dtype=self.dtype)
-        return {
+        out = {
             "d_alpha": torch.zeros(K, M, **z),
             "d_uv": torch.zeros(S, 2, **z),
             "rot": torch.zeros(3, **z),
             "trans": torch.zeros(3, **z),
         }
+        if self.patch_rigid:
+            out["p_rot"] = torch.zeros(K, 3, **z)
+            out["p_trans"] = torch.zeros(K, 3, **z)
+        return out
 
     def _active(self) -> torch.Tensor:
         return (self._degree <= self.order).to(self.dtype)  # (M,)
 
-    def _evaluate(self, params: dict[str, torch.Tensor]):
-        """Samples in camera coordinates ``(F, S, 3)``, before the rigid motion.
+    def _patch_maps(self, params: dict[str, torch.Tensor]):
+        """``(A, b)``: local patch coordinates -> normalised global frame, per frame.
 
-        Also returns the offset coefficients ``(F, K, M)`` and displaced ``uv`` ``(F, S, 2)``.
+        ``A`` is ``(K, 3, 3)`` or ``(F, K, 3, 3)`` (with per-patch rigid motions), ``b``
+        ``(K, 3)`` or ``(F, K, 3)``.
+        """
+        if not self.patch_rigid:
+            return self._A, self._b
+        Rp = axis_angle_to_matrix(params["p_rot"])  # (F, K, 3, 3) about the patch origins
+        return Rp @ self._A, self._b + params["p_trans"]
+
+    def _evaluate(self, params: dict[str, torch.Tensor]):
+        """Samples in the normalised global frame ``(F, S, 3)``, before the global rigid motion.
+
+        Also returns the offset coefficients ``(F, K, M)``, displaced ``uv`` ``(F, S, 2)`` and
+        the patch maps of :meth:`_patch_maps`.
         """
         uv = self._uv + params["d_uv"]  # (F, S, 2)
         coeff = self._coeffs + params["d_alpha"] * self._active()  # (F, K, M)
-        o = self._orient
-        xs = []
+        A, b = self._patch_maps(params)
+        per_frame = A.ndim == 4
+        ys = []
         for k, sl in enumerate(self._slices):
             uvk = uv[:, sl]
             ck = coeff[:, k, :, None]  # (F, M, 1)
             z = (jets.monomials(uvk, self.max_order) @ ck)[..., 0] + self._resid[sl]
             pts = torch.cat([uvk, z[..., None]], dim=-1)  # (F, S_k, 3) local
-            xs.append(o.s[k] * (pts @ o.R[k].T) + o.T[k])
-        x = xs[0] if len(xs) == 1 else torch.cat(xs, dim=1)
-        return x, coeff, uv
+            if per_frame:
+                ys.append(pts @ A[:, k].transpose(-1, -2) + b[:, k, None, :])
+            else:
+                ys.append(pts @ A[k].T + b[k])
+        y = ys[0] if len(ys) == 1 else torch.cat(ys, dim=1)
+        return y, coeff, uv, A
 
-    def _boundary(self, x: torch.Tensor, coeff: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    def _boundary(self, y: torch.Tensor, coeff: torch.Tensor, uv: torch.Tensor,
+                  A: torch.Tensor) -> torch.Tensor:
         t = self.template
         a, b = t.pairs[:, 0], t.pairs[:, 1]
-        xn = x / self.scale  # normalised units
-        d2 = (xn[:, a] - xn[:, b]).pow(2).sum(-1)  # (F, P)
+        d2 = (y[:, a] - y[:, b]).pow(2).sum(-1)  # (F, P), normalised units
         normals = []
         for idx in (a, b):  # jet normals at the pair samples only
             kp = t.sample_patch[idx]
@@ -421,7 +451,10 @@ class JetModel(DeformationModel):
             zv = (jets.monomial_derivatives(q, self.max_order, 0, 1) * c).sum(-1)
             n = torch.stack([-zu, -zv, torch.ones_like(zu)], dim=-1)
             n = n / n.norm(dim=-1, keepdim=True)
-            normals.append(torch.einsum("pij,fpj->fpi", self._orient.R[kp], n))
+            Ak = A[:, kp] if A.ndim == 4 else A[kp]  # scaled rotations: normalise after
+            m = (Ak @ n[..., None])[..., 0] if A.ndim == 4 else torch.einsum("pij,fpj->fpi",
+                                                                             Ak, n)
+            normals.append(m / m.norm(dim=-1, keepdim=True))
         cos = (normals[0] * normals[1]).sum(-1)
         return (self.k_b * d2 + self.k_bn * (1.0 - cos).pow(2)).mean()
 
@@ -435,12 +468,12 @@ class JetModel(DeformationModel):
 
     def forward(self, params: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         """Vertices ``(F, V, 3)`` and the boundary term (scalar) from one evaluation."""
-        x, coeff, uv = self._evaluate(params)
+        y, coeff, uv, A = self._evaluate(params)
         reg = (torch.zeros((), dtype=self.dtype) if len(self.template.pairs) == 0
-               else self._boundary(x, coeff, uv))
+               else self._boundary(y, coeff, uv, A))
         if not self._identity:
-            x = x.index_select(1, self.template.primary)
-        return _rigid(x, self._frame, params["rot"], params["trans"]), reg
+            y = y.index_select(1, self.template.primary)
+        return _rigid_local(y, self._frame, params["rot"], params["trans"]), reg
 
 
 class VertexModel(DeformationModel):
@@ -482,11 +515,8 @@ class VertexModel(DeformationModel):
 
     def vertices(self, params: dict[str, torch.Tensor]) -> torch.Tensor:
         """``(F, V, 3)`` camera-frame vertices of stacked parameters."""
-        f = self._frame
-        local = self._local + params["d_x"]  # (F, V, 3)
-        Rc = axis_angle_to_matrix(params["rot"])
-        moved = local @ Rc.transpose(-1, -2) + params["trans"][:, None, :]
-        return f.s[0] * (moved @ f.R[0].T) + f.T[0]
+        return _rigid_local(self._local + params["d_x"], self._frame, params["rot"],
+                            params["trans"])
 
 
 def build_model(
@@ -499,6 +529,7 @@ def build_model(
     patches: int = 1,
     k_b: float = 1.0,
     k_bn: float = 0.1,
+    patch_rigid: bool = True,
     seed: int = 0,
     dtype: torch.dtype = torch.float32,
 ) -> DeformationModel:
@@ -518,6 +549,8 @@ def build_model(
         Number of jet patches.
     k_b, k_bn : float
         Boundary-consistency weights (several patches).
+    patch_rigid : bool
+        A rigid motion per patch (several patches, see :class:`JetModel`).
     seed : int
         Partition seed.
     dtype : torch.dtype
@@ -539,10 +572,11 @@ def build_model(
     if order == ORDER_AUTO:
         top = check_int(max_order, "max_order", low=2, high=jets.MAX_ORDER)
         tmpl = JetTemplate.fit(verts, faces, top, patches, seed=seed)
-        return JetModel(tmpl, order=2, k_b=k_b, k_bn=k_bn, dtype=dtype)
+        return JetModel(tmpl, order=2, k_b=k_b, k_bn=k_bn, patch_rigid=patch_rigid,
+                        dtype=dtype)
     if isinstance(order, str):
         raise ValueError(f"order: expected an integer in [1, {jets.MAX_ORDER}] or 'auto', "
                          f"got {order!r}")
     tmpl = JetTemplate.fit(verts, faces, order, patches, seed=seed)
-    return JetModel(tmpl, k_b=k_b, k_bn=k_bn, dtype=dtype)
+    return JetModel(tmpl, k_b=k_b, k_bn=k_bn, patch_rigid=patch_rigid, dtype=dtype)
 
