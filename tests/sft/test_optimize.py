@@ -185,3 +185,18 @@ def test_auto_order_rises_on_plateaus(make_sequence, tmp_path):
     orders = [r["order"] for r in res.rows]
     assert orders[0] >= 2 and orders == sorted(orders) and orders[-1] <= 4
     assert orders[-1] > 2  # at least one raise happened
+
+
+def test_auto_order_rises_on_slow_progress(make_sequence, tmp_path):
+    # auto_gain = 1: every block of `patience` iterations counts as slow progress, so the
+    # order climbs to max_order within the first window; no block ends within a window of
+    # fewer iterations than `patience`, and without a plateau the order stays at 2
+    seq = make_sequence("small", 10, size=64, grid=(12, 9))
+    st = SfTSettings(order="auto", max_order=4, patience=5, frame_period=20, auto_gain=1.0,
+                     overlays=0, window=1)
+    res = run_sft(seq, tmp_path / "fast", st, progress=False, max_frames=1, charts=False)
+    assert res.rows[0]["order"] == 4
+    st = SfTSettings(order="auto", max_order=4, patience=50, frame_period=20, auto_gain=1.0,
+                     overlays=0, window=1)
+    res = run_sft(seq, tmp_path / "none", st, progress=False, max_frames=2, charts=False)
+    assert [r["order"] for r in res.rows] == [2, 2]
