@@ -90,8 +90,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Deform the sequence's template so that its soft renders match the frames "
         "(PolySfT, or the per-vertex baseline). Writes OUT_DIR/meshes/000000.ply ... "
         "(template vertex order), metrics.json (per frame and mean: e_3d, the fixed "
-        "template's e_3d, e_n in degrees, RMSE, iterations, seconds), losses.jsonl, "
-        "PNG charts and a checkpoint (an interrupted run resumes).",
+        "template's e_3d, e_n in degrees, RMSE, iterations, seconds), frames.jsonl, "
+        "losses.jsonl, PNG charts and a checkpoint (an interrupted run resumes).",
     )
     p.add_argument("sequence", help="sequence folder (see sft.data)")
     p.add_argument("-o", "--out", required=True, help="output folder")

@@ -14,11 +14,13 @@ One Adam optimiser per window, with the learning rates of the thesis per paramet
 in the model's normalised units (the template radius is 1), see :mod:`sft.model`.
 
 Checkpoints are written after every ``checkpoint_every`` windows (atomically): the index of the
-next window, the parameters of the frames still in the window, the model's state (active jet
-order) and the per-frame records. Windows are deterministic, so resuming from a checkpoint gives
-the same meshes as an uninterrupted run. Only the current window's frames are held in memory;
-meshes, records and loss curves are written as the run goes, so memory does not grow with the
-number of frames.
+next window, the parameters of the frames still in the window (with their Adam moments) and
+the model's state (active jet order). Windows are deterministic, so resuming from a checkpoint
+gives the same meshes as an uninterrupted run. Only the current window's frames are held in
+memory; meshes, per-frame records (``frames.jsonl``) and loss curves (``losses.jsonl``) are
+written as the run goes and read back once at the end for ``metrics.json``, so memory does not
+grow with the number of frames (before, the records were kept in memory and in the checkpoint:
+about 1.5 KB per frame).
 """
 
 from __future__ import annotations
@@ -47,7 +49,9 @@ __all__ = ["SfTSettings", "SfTResult", "run_sft", "reconstruct_window", "CHECKPO
 
 #: File name of the checkpoint inside the output folder.
 CHECKPOINT_NAME = "checkpoint.pt"
-_CKPT_VERSION = 1
+_CKPT_VERSION = 2
+#: Per-frame records, one JSON line per frame, written as the run goes.
+FRAMES_NAME = "frames.jsonl"
 
 
 @dataclass
@@ -314,8 +318,8 @@ def run_sft(
         A loaded sequence or its folder (see :mod:`sft.data`).
     out_dir : path
         Output folder: ``meshes/000000.ply ...`` (template vertex order, scene units),
-        ``metrics.json``, ``losses.jsonl`` (one line per window), ``checkpoint.pt`` and PNG
-        charts. Created if needed.
+        ``metrics.json``, ``frames.jsonl`` (one record per frame), ``losses.jsonl`` (one line
+        per window), ``checkpoint.pt`` and PNG charts. Created if needed.
     settings : SfTSettings, optional
         Defaults to ``SfTSettings()``.
     resume : bool
@@ -359,24 +363,23 @@ def run_sft(
     ckpt_path = out / CHECKPOINT_NAME
     sdict = asdict(settings)
 
-    start, rows, pending, last, last2 = 0, [], {}, None, None
+    start, pending, last, last2 = 0, {}, None, None
     if resume and ckpt_path.is_file():
         ck = torch.load(ckpt_path, weights_only=False)
-        if ck.get("fingerprint") != fp or ck.get("settings") != sdict or ck.get("T") != T:
+        if (ck.get("version") != _CKPT_VERSION or ck.get("fingerprint") != fp
+                or ck.get("settings") != sdict or ck.get("T") != T):
             raise ValueError(
-                f"{ckpt_path}: the checkpoint belongs to another sequence or other settings; "
-                "remove it or choose another output folder"
+                f"{ckpt_path}: the checkpoint belongs to another sequence or other settings "
+                "(or an older polygeo); remove it or choose another output folder"
             )
-        start, rows, pending = ck["next"], ck["rows"], ck["pending"]
+        start, pending = ck["next"], ck["pending"]
         last, last2 = ck["last"], ck["last2"]
         model.load_state(ck["model_state"])
-    losses_path = out / "losses.jsonl"
-    if start == 0 and losses_path.exists():
-        losses_path.unlink()
-    elif losses_path.exists():  # drop lines of windows after the checkpoint
-        kept = [ln for ln in losses_path.read_text().splitlines()
-                if ln.strip() and json.loads(ln)["frame"] < start]
-        losses_path.write_text("".join(ln + "\n" for ln in kept))
+    # per-frame records and loss curves go to files as the run goes (memory stays flat);
+    # on resume, lines of frames after the checkpoint are dropped
+    losses_path, frames_path = out / "losses.jsonl", out / FRAMES_NAME
+    for path in (losses_path, frames_path):
+        _truncate_jsonl(path, start)
 
     overlay_set = _overlay_frames(T, settings.overlays)
     template_v = torch.as_tensor(t.verts, dtype=torch.float64)
@@ -418,14 +421,15 @@ def run_sft(
         row["seconds"] = time.perf_counter() - t0
         row["cpu_seconds"] = time.process_time() - c0
         row["rss_mb"] = _rss_mb()
-        rows.append(row)
+        with open(frames_path, "a") as fh:
+            fh.write(json.dumps(row) + "\n")
         with open(losses_path, "a") as fh:
             fh.write(json.dumps({"frame": s, "iterations": iters, "loss": curve}) + "\n")
         n_windows += 1
         if settings.checkpoint_every and (n_windows % settings.checkpoint_every == 0
                                           or s == T - 1):
             _atomic_save({"version": _CKPT_VERSION, "fingerprint": fp, "settings": sdict, "T": T,
-                          "next": s + 1, "rows": rows, "pending": pending, "last": last,
+                          "next": s + 1, "pending": pending, "last": last,
                           "last2": last2,
                           "model_state": model.state()}, ckpt_path)
         if bar is not None:
@@ -434,6 +438,7 @@ def run_sft(
                 bar.set_postfix(e3d=f"{row['e_3d']:.4f}", it=iters)
     if bar is not None:
         bar.close()
+    rows = _read_jsonl(frames_path)
     complete = len(rows) == T
     summary = summarize(rows)
     record = {"sequence": str(seq.root), "frames": T, "complete": complete,
@@ -453,6 +458,24 @@ def _build_model(st: SfTSettings, template) -> DeformationModel:
     return build_model(st.method, template.verts, template.faces, order=st.order,
                        max_order=st.max_order, patches=st.patches, k_b=st.k_b, k_bn=st.k_bn,
                        patch_rigid=st.patch_rigid, seed=st.seed, dtype=st.torch_dtype)
+
+
+def _read_jsonl(path: Path) -> list[dict]:
+    """The records of a JSON-lines file (empty when it does not exist)."""
+    if not path.exists():
+        return []
+    return [json.loads(ln) for ln in path.read_text().splitlines() if ln.strip()]
+
+
+def _truncate_jsonl(path: Path, start: int) -> None:
+    """Keep the lines of frames before ``start`` (remove the file when ``start`` is 0)."""
+    if not path.exists():
+        return
+    if start == 0:
+        path.unlink()
+        return
+    kept = [r for r in _read_jsonl(path) if r["frame"] < start]
+    path.write_text("".join(json.dumps(r) + "\n" for r in kept))
 
 
 def _initial(model: DeformationModel, st: SfTSettings, prev: dict | None,

@@ -67,6 +67,25 @@ def test_resume_equals_uninterrupted(make_sequence, tmp_path):
         run_sft(seq, tmp_path / "cut", SfTSettings(patience=6, frame_period=12), progress=False)
 
 
+def test_records_stream_to_disk_and_resume_drops_unsaved_frames(make_sequence, tmp_path):
+    # records go to frames.jsonl as the run goes (not into memory or the checkpoint); after
+    # an interruption between checkpoints, resuming drops the records of the frames the
+    # checkpoint does not cover and recomputes them
+    seq = load_sequence(make_sequence("small", 4, size=64, grid=(12, 9)))
+    st = SfTSettings(patience=5, frame_period=12, overlays=0, checkpoint_every=2)
+    full = run_sft(seq, tmp_path / "full", st, progress=False, charts=False)
+    run_sft(seq, tmp_path / "cut", st, progress=False, max_windows=3, charts=False)
+    lines = (tmp_path / "cut" / "frames.jsonl").read_text().splitlines()
+    assert [json.loads(ln)["frame"] for ln in lines] == [0, 1, 2]
+    ck = torch.load(tmp_path / "cut" / CHECKPOINT_NAME, weights_only=False)
+    assert ck["next"] == 2 and "rows" not in ck
+    resumed = run_sft(seq, tmp_path / "cut", st, progress=False, charts=False)
+    assert [r["frame"] for r in resumed.rows] == [0, 1, 2, 3]
+    for ra, rb in zip(full.rows, resumed.rows):
+        for k in ("iterations", "loss", "e_3d"):
+            assert ra[k] == rb[k]
+
+
 def test_outputs(make_sequence, tmp_path):
     seq = load_sequence(make_sequence("small", 4, size=64, grid=(12, 9)))
     st = SfTSettings(patience=5, frame_period=10, overlays=2)
