@@ -263,7 +263,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--from-partial",
         action="store_true",
-        help="no runs: summarise the runs in <out>/bm_sft.partial.json (interrupted benchmark)",
+        help="summarise the runs in <out>/bm_sft.partial.json (interrupted benchmark); only "
+        "the memory run runs",
     )
     a = ap.parse_args(argv)
 
@@ -299,8 +300,9 @@ def main(argv: list[str] | None = None) -> int:
         partial.write_text(json.dumps({"frames": frames, "results": results}, indent=1) + "\n")
 
     args = [(label, fam, st, str(seqs[k]), k, frames, a.threads) for label, fam, st, k in jobs]
-    if a.from_partial:  # summarise the runs an interrupted benchmark finished
+    if a.from_partial:  # summarise the runs an interrupted benchmark finished (+ memory run)
         results = json.loads(partial.read_text())["results"]
+        mem = _mem_job((str(data), mem_frames, a.threads)) if mem_frames else None
     elif a.jobs <= 1:
         for job in tqdm(args, desc="bm_sft runs", unit="run"):
             record(_job(job))
