@@ -42,6 +42,9 @@ def _add_settings_args(p: argparse.ArgumentParser) -> None:
         "window": "sliding-window size W",
         "patience": "iterations without improvement that end a window",
         "frame_period": "most iterations per window",
+        "patches": "jet patches (1: the whole template); several for templates that bend or "
+                   "roll further than a height graph over one plane",
+        "patch_rigid": "true/false: a rigid motion per patch, tied by the boundary term",
         "freeze": "comma-separated parameters kept fixed, e.g. d_alpha,d_uv",
         "carry_adam": "true/false: keep Adam moments across windows",
     }
