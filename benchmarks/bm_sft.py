@@ -143,23 +143,26 @@ def run_config(seq: Path, settings: dict, frames: int) -> dict:
 
 
 def visible_errors(seq: Path, meshes: Path, frames: int) -> dict:
-    """e_3D restricted to the vertices the camera sees in the ground truth, and its ratio.
+    """e_3D, its ratio to the fixed template's and e_n on the vertices the camera sees.
 
     A vertex is visible when the first hit of the ray from the camera centre towards it is
     the vertex itself (trimesh ray casting on the ground-truth mesh, 0.1 mm tolerance).
     Parts that roll behind the sheet are observed only through the silhouette, so this
     separates what the images determine from what the priors have to guess.
     """
+    import torch
     import trimesh
 
     from polygeo.io import read_mesh
+    from polygeo.mesh import vertex_normals
     from sft.data import load_sequence
 
     sq = load_sequence(seq)
     faces = np.asarray(sq.template.faces)
     tmpl = np.asarray(sq.template.verts, dtype=np.float64)
     num = den = num_t = 0.0
-    hidden = []
+    hidden, ang_vis, ang_hid = [], [], []
+    ft = torch.as_tensor(faces)
     for i in range(frames):
         G = np.asarray(sq.gt(i), dtype=np.float64)
         X = np.asarray(read_mesh(meshes / f"{i:06d}.ply").points, dtype=np.float64)
@@ -174,8 +177,15 @@ def visible_errors(seq: Path, meshes: Path, frames: int) -> dict:
         den += np.linalg.norm(G[v]) / frames
         num += np.linalg.norm(X[v] - G[v]) / frames
         num_t += np.linalg.norm(tmpl[v] - G[v]) / frames
+        na = vertex_normals(torch.as_tensor(X), ft).normals.numpy()
+        nb = vertex_normals(torch.as_tensor(G), ft).normals.numpy()
+        ang = np.degrees(np.arccos(np.clip((na * nb).sum(-1), -1.0, 1.0)))
+        ang_vis.append(float(ang[v].mean()))
+        ang_hid.append(float(ang[~v].mean()) if (~v).any() else float("nan"))
+    hid = [a for a in ang_hid if np.isfinite(a)]
     return {"e_3d_visible": num / den, "ratio_visible": num / num_t,
-            "hidden_fraction": hidden}
+            "hidden_fraction": hidden, "e_n_visible": float(np.mean(ang_vis)),
+            "e_n_hidden": float(np.mean(hid)) if hid else float("nan")}
 
 
 def _worker_setup(threads: int) -> None:
@@ -359,6 +369,7 @@ def main(argv: list[str] | None = None) -> int:
                 "config": r["config"],
                 "kind": r["kind"],
                 "ratio_visible": r.get("ratio_visible", float("nan")),
+                "e_n_visible": r.get("e_n_visible", float("nan")),
                 "max_hidden_fraction": max(r.get("hidden_fraction", [float("nan")])),
                 "ratio": r["ratio"],
                 "e_n": r["e_n"],
@@ -478,7 +489,8 @@ def _print(agg, targets, mem):
         print(
             f"  {r['config']:<18} {r['kind']:<6} ratio {r['ratio']:.3f}  e_n {r['e_n']:.2f}  "
             f"{r['seconds']:.2f} s ({r['cpu_seconds']:.2f} cpu)  visible-only ratio "
-            f"{r['ratio_visible']:.3f} (hidden <= {100 * r['max_hidden_fraction']:.0f} %)"
+            f"{r['ratio_visible']:.3f} e_n {r['e_n_visible']:.2f}"
+            f" (hidden <= {100 * r['max_hidden_fraction']:.0f} %)"
             f"   baseline ratio {r['vertex_ratio']:.3f}  e_n {r['vertex_e_n']:.2f}"
         )
     print(
