@@ -257,6 +257,33 @@ def _rss_mb() -> float:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def _load_libc():
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        libc.malloc_trim  # noqa: B018 - glibc only
+        return libc
+    except (OSError, AttributeError):  # pragma: no cover - not glibc
+        return None
+
+
+_LIBC = _load_libc()
+
+
+def _trim_heap() -> None:
+    """Return the heap's free memory to the OS (glibc ``malloc_trim``; no-op elsewhere).
+
+    Each window allocates and frees tensors of slightly different sizes; glibc keeps the
+    freed pages, so without this the resident size of a long run creeps up by about 1 KB
+    per frame (+0.10 MB per 100 frames on bm_sft's 500-frame run, +0.02 with it: flat to
+    the measurement's resolution) although no object outlives its window. Costs about
+    a millisecond per frame.
+    """
+    if _LIBC is not None:
+        _LIBC.malloc_trim(0)
+
+
 def _fingerprint(seq: Sequence) -> str:
     h = hashlib.sha1()
     h.update(np.ascontiguousarray(seq.template.verts).tobytes())
@@ -420,6 +447,7 @@ def run_sft(
         last2, last = last, pending.pop(s)
         row["seconds"] = time.perf_counter() - t0
         row["cpu_seconds"] = time.process_time() - c0
+        _trim_heap()
         row["rss_mb"] = _rss_mb()
         with open(frames_path, "a") as fh:
             fh.write(json.dumps(row) + "\n")
