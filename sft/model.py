@@ -11,7 +11,9 @@ PolySfT (thesis section 5.3) represents the template as PolyFit patches
 where ``O_g`` is the template's global PCA frame (for one patch ``O_g = O_k`` and this is the
 thesis' ``O o (R_c phi(u + Du, v + Dv; alpha + Dalpha) + T_c)``) and ``r`` is the height
 residual of the template fit along the patch normal, kept fixed so that zero parameters give the
-template back exactly.
+template back exactly. With several patches each patch also has its own rigid motion
+``(R_k, T_k)`` (about its origin, in the normalised global frame) between ``O_g^-1 O_k`` and
+``R_c`` (:class:`JetModel`, ``patch_rigid``); the boundary term ties the patches together.
 
 Units. Every patch frame is scaled so that its points lie in the unit ball around its
 centroid (``s_k`` = the patch radius, :class:`polygeo.patches.PatchSet`); with one patch the
@@ -452,8 +454,7 @@ class JetModel(DeformationModel):
             n = torch.stack([-zu, -zv, torch.ones_like(zu)], dim=-1)
             n = n / n.norm(dim=-1, keepdim=True)
             Ak = A[:, kp] if A.ndim == 4 else A[kp]  # scaled rotations: normalise after
-            m = (Ak @ n[..., None])[..., 0] if A.ndim == 4 else torch.einsum("pij,fpj->fpi",
-                                                                             Ak, n)
+            m = (Ak @ n[..., None])[..., 0]  # (F, P, 3)
             normals.append(m / m.norm(dim=-1, keepdim=True))
         cos = (normals[0] * normals[1]).sum(-1)
         return (self.k_b * d2 + self.k_bn * (1.0 - cos).pow(2)).mean()
