@@ -77,7 +77,7 @@ def rmse(X: Any, X_gt: Any) -> np.ndarray:
     return ((a - b) ** 2).sum(-1).mean(-1).sqrt().numpy()
 
 
-def e_n(X: Any, X_gt: Any, faces: Any) -> np.ndarray:
+def e_n(X: Any, X_gt: Any, faces: Any, mask: Any = None) -> np.ndarray:
     """Mean angle (degrees) between corresponding vertex normals.
 
     Parameters
@@ -86,12 +86,20 @@ def e_n(X: Any, X_gt: Any, faces: Any) -> np.ndarray:
         ``(..., V, 3)``.
     faces : array_like
         ``(F, 3)`` triangles shared by both meshes.
+    mask : array_like, optional
+        ``(..., V)`` bool: only these vertices enter the mean (e.g. the visible ones); the
+        normals are still computed on the whole mesh.
 
     Returns
     -------
     np.ndarray
         ``(...)`` float64 in ``[0, 180]``; vertices whose normal is undefined in either mesh
-        (isolated or cancelling) are left out of the mean.
+        (isolated or cancelling) are left out of the mean; 0 when no vertex is left.
+
+    Raises
+    ------
+    ValueError
+        On mismatched shapes, or a ``mask`` that is not ``(..., V)``.
     """
     from polygeo.mesh import vertex_normals
 
@@ -99,6 +107,12 @@ def e_n(X: Any, X_gt: Any, faces: Any) -> np.ndarray:
     na = vertex_normals(a, faces)
     nb = vertex_normals(b, faces)
     ok = na.valid & nb.valid
+    if mask is not None:
+        m = torch.as_tensor(np.asarray(mask), dtype=torch.bool)
+        if m.shape[-1:] != ok.shape[-1:]:
+            raise ValueError(f"mask: expected (..., {ok.shape[-1]}) booleans, got "
+                             f"{tuple(m.shape)}")
+        ok = ok & m
     cos = (na.normals * nb.normals).sum(-1).clamp(-1.0, 1.0)
     ang = torch.rad2deg(torch.arccos(cos))
     ang = torch.where(ok, ang, torch.zeros_like(ang))

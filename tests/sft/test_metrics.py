@@ -41,6 +41,27 @@ def test_normal_angle_closed_forms():
     assert float(e_n(v @ flip, v, f)) == pytest.approx(180.0, rel=1e-6)
 
 
+def test_normal_angle_mask_selects_vertices():
+    # a plane tilted by 7 degrees about the line y = 0 for y > 0 only (a crease): vertices of
+    # the flat half away from the crease keep their normals exactly, those of the tilted half
+    # (away from it) are off by 7 degrees; the crease row has the mean normal in between
+    v, f = plane(9)
+    th = np.radians(7.0)
+    X = v.copy()
+    up = v[:, 1] > 0
+    X[up, 1] = v[up, 1] * np.cos(th)
+    X[up, 2] = 3.0 + v[up, 1] * np.sin(th)
+    flat = v[:, 1] < -0.3
+    tilted = v[:, 1] > 0.3
+    assert float(e_n(X, v, f, mask=flat)) == pytest.approx(0.0, abs=1e-6)
+    assert float(e_n(X, v, f, mask=tilted)) == pytest.approx(7.0, rel=1e-9)
+    whole = float(e_n(X, v, f))
+    assert 0.0 < whole < 7.0
+    assert float(e_n(X, v, f, mask=np.zeros(len(v), bool))) == 0.0  # nothing left: 0
+    with pytest.raises(ValueError, match="mask"):
+        e_n(X, v, f, mask=np.ones(3, bool))
+
+
 def test_frame_errors_and_summary():
     v, f = plane()
     fe = frame_errors(1.01 * v, v, 1.02 * v, f)
