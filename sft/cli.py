@@ -47,6 +47,8 @@ def _add_settings_args(p: argparse.ArgumentParser) -> None:
         "patch_rigid": "true/false: a rigid motion per patch, tied by the boundary term",
         "freeze": "comma-separated parameters kept fixed, e.g. d_alpha,d_uv",
         "carry_adam": "true/false: keep Adam moments across windows",
+        "keep_best": "true/false: a window returns its lowest-loss iterate, not its last",
+        "warmup": "Adam steps over which a fresh state's learning rates ramp up from 0",
     }
     for f in fields(SfTSettings):
         flag = "--" + f.name.replace("_", "-")
