@@ -622,7 +622,7 @@ def _optimize_window(model: DeformationModel, terms: ImageTerms, inext: Inextens
                 since = 0
                 continue
             break
-    if best_params is not None:
+    if best_params is not None:  # the Adam moments stay those of the last step
         with torch.no_grad():
             for n in free:
                 params[n].copy_(best_params[n])
@@ -638,7 +638,9 @@ class _FrameAdam:
 
     The moments of a frame travel with it from window to window (``SfTSettings.carry_adam``)
     and a frame entering the window inherits those of the frame before it, so a new window
-    does not restart every parameter with the lr-sized first steps of a fresh Adam.
+    does not restart every parameter with the lr-sized first steps of a fresh Adam. With
+    ``warmup`` N > 0 the learning rate of a frame at its step t is ``lr * min(1, t / N)``
+    (``torch.optim.lr_scheduler.LambdaLR`` with that factor): only fresh states ramp.
     """
 
     B1, B2, EPS = 0.9, 0.999, 1e-8

@@ -140,6 +140,8 @@ def test_settings_validation():
         SfTSettings(k_mi=-1.0)
     with pytest.raises(ValueError, match="freeze: expected one of"):
         SfTSettings(freeze=("alpha",))
+    with pytest.raises(ValueError, match="warmup: expected an integer in"):
+        SfTSettings(warmup=-1)
     with pytest.raises(ValueError, match="sil_kind: expected one of"):
         SfTSettings(sil_kind="huber")
     assert SfTSettings(order="auto").order == "auto"
