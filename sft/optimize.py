@@ -408,14 +408,8 @@ def run_sft(
     (out / "meshes").mkdir(parents=True, exist_ok=True)
     T = seq.n_frames if max_frames is None else min(seq.n_frames, check_int(max_frames,
                                                                             "max_frames", low=1))
-    dtype = settings.torch_dtype
     t = seq.template
-    model = _build_model(settings, t)
-    raster = RasterSettings(sigma=settings.sigma, gamma=settings.gamma)
-    terms = ImageTerms(seq, raster, k_rgb=settings.k_rgb, k_sil=settings.k_sil,
-                       rgb_kind=settings.rgb_kind, sil_kind=settings.sil_kind,
-                       pyramid=settings.pyramid, dtype=dtype)
-    inext = Inextensibility(t.verts, t.faces, model.scale, settings.k_mi)
+    model, terms, inext = _objective_parts(seq, settings)
     window = _Window(seq, terms)
     fp = _fingerprint(seq)
     ckpt_path = out / CHECKPOINT_NAME
@@ -517,6 +511,17 @@ def _build_model(st: SfTSettings, template) -> DeformationModel:
     return build_model(st.method, template.verts, template.faces, order=st.order,
                        max_order=st.max_order, patches=st.patches, k_b=st.k_b, k_bn=st.k_bn,
                        patch_rigid=st.patch_rigid, seed=st.seed, dtype=st.torch_dtype)
+
+
+def _objective_parts(seq: Sequence, st: SfTSettings):
+    """``(model, image terms, inextensibility)`` of a run with settings ``st`` on ``seq``."""
+    t = seq.template
+    model = _build_model(st, t)
+    terms = ImageTerms(seq, RasterSettings(sigma=st.sigma, gamma=st.gamma), k_rgb=st.k_rgb,
+                       k_sil=st.k_sil, rgb_kind=st.rgb_kind, sil_kind=st.sil_kind,
+                       pyramid=st.pyramid, dtype=st.torch_dtype)
+    inext = Inextensibility(t.verts, t.faces, model.scale, st.k_mi)
+    return model, terms, inext
 
 
 def _read_jsonl(path: Path) -> list[dict]:
@@ -712,12 +717,7 @@ def reconstruct_window(
     """
     st = settings or SfTSettings()
     seq = sequence if isinstance(sequence, Sequence) else load_sequence(sequence)
-    t = seq.template
-    model = _build_model(st, t)
-    terms = ImageTerms(seq, RasterSettings(sigma=st.sigma, gamma=st.gamma), k_rgb=st.k_rgb,
-                       k_sil=st.k_sil, rgb_kind=st.rgb_kind, sil_kind=st.sil_kind,
-                       pyramid=st.pyramid, dtype=st.torch_dtype)
-    inext = Inextensibility(t.verts, t.faces, model.scale, st.k_mi)
+    model, terms, inext = _objective_parts(seq, st)
     targets, masks = _Window(seq, terms).targets(list(frames))
     pending = {j: model.init_params() for j in frames}
     cb = None

@@ -223,20 +223,6 @@ def test_auto_order_rises_on_slow_progress(make_sequence, tmp_path):
     assert [r["order"] for r in res.rows] == [2, 2]
 
 
-def _window_parts(seq, st, frames):
-    from polygeo.render import RasterSettings
-    from sft.losses import ImageTerms, Inextensibility
-    from sft.optimize import _build_model, _Window
-
-    t = seq.template
-    model = _build_model(st, t)
-    terms = ImageTerms(seq, RasterSettings(sigma=st.sigma, gamma=st.gamma), k_rgb=st.k_rgb,
-                       k_sil=st.k_sil, dtype=st.torch_dtype)
-    inext = Inextensibility(t.verts, t.faces, model.scale, st.k_mi)
-    targets, masks = _Window(seq, terms).targets(frames)
-    return model, terms, inext, targets, masks
-
-
 @pytest.mark.parametrize("keep_best", [True, False])
 def test_window_returns_best_iterate(make_sequence, keep_best):
     """keep_best: the parameters a window hands on are its lowest-loss iterate, not the last.
@@ -245,13 +231,14 @@ def test_window_returns_best_iterate(make_sequence, keep_best):
     not the best one; re-evaluating the objective at the returned parameters must give the
     reported loss, min(curve), with keep_best.
     """
-    from sft.optimize import _optimize_window, _window_loss
+    from sft.optimize import _objective_parts, _optimize_window, _Window, _window_loss
 
     seq = load_sequence(make_sequence("small", 10, size=64, grid=(12, 9)))
     st = SfTSettings(lr_alpha=0.3, lr_uv=0.03, patience=10**6, frame_period=40, overlays=0,
                      keep_best=keep_best, dtype="float64")
     frames = [3, 4]
-    model, terms, inext, targets, masks = _window_parts(seq, st, frames)
+    model, terms, inext = _objective_parts(seq, st)
+    targets, masks = _Window(seq, terms).targets(frames)
     pending = {j: model.init_params() for j in frames}
     iters, curve, loss = _optimize_window(model, terms, inext, st, pending, frames, targets,
                                           masks)
