@@ -15,7 +15,9 @@ Sweeps (one factor at a time around the base configuration, the ``SfTSettings`` 
 W = 3, patience 30, frame period 200, order 6, previous-frame initialisation, rigid learning
 rate 1e-3): frame period (iterations), patience, window size, jet order (incl. ``auto``) and
 the thesis' rigid learning rate (1e-4) for PolySfT; frame period and window size for the
-baseline. The base configurations run on every sequence, the sweeps
+baseline, and the cheap end of both frontiers (window 1 with frame periods 70 and 100; the
+baseline at window 1 with period 100 and without the Adam warm-up, which costs it accuracy).
+The base configurations run on every sequence, the sweeps
 on ``--sweep-kinds`` (bend and fold); the frontier averages over the sweep kinds.
 
 A memory run processes a long tiny sequence (``--memory-frames``, default 500, 48 px) and
@@ -108,6 +110,15 @@ def configs(quick: bool) -> list[tuple[str, str, dict, bool]]:
         out.append(("polysft window 2", "polysft", {**BASE_POLY, "window": 2}, False))
     out.append(("polysft window 1", "polysft", {**BASE_POLY, "window": 1}, False))
     out.append(("vertex window 1", "vertex", {**BASE_VERT, "window": 1}, False))
+    if not quick:  # the cheap end of both frontiers
+        for p in (70, 100):
+            out.append((f"polysft window 1 period {p}", "polysft",
+                        {**BASE_POLY, "window": 1, "frame_period": p}, False))
+        out.append(("vertex window 1 period 100", "vertex",
+                    {**BASE_VERT, "window": 1, "frame_period": 100}, False))
+        # the Adam warm-up helps PolySfT and costs the baseline: its best without it
+        out.append(("vertex window 1 warmup 0", "vertex",
+                    {**BASE_VERT, "window": 1, "warmup": 0}, False))
     for o in (2, "auto") if quick else (2, 4, "auto"):
         out.append((f"polysft order {o}", "polysft", {**BASE_POLY, "order": o}, False))
     if not quick:  # the thesis' rigid learning rate (see sft.optimize.SfTSettings.lr_rigid)
