@@ -425,17 +425,14 @@ class JetModel(DeformationModel):
         uv = self._uv + params["d_uv"]  # (F, S, 2)
         coeff = self._coeffs + params["d_alpha"] * self._active()  # (F, K, M)
         A, b = self._patch_maps(params)
-        per_frame = A.ndim == 4
         ys = []
         for k, sl in enumerate(self._slices):
             uvk = uv[:, sl]
             ck = coeff[:, k, :, None]  # (F, M, 1)
             z = (jets.monomials(uvk, self.max_order) @ ck)[..., 0] + self._resid[sl]
             pts = torch.cat([uvk, z[..., None]], dim=-1)  # (F, S_k, 3) local
-            if per_frame:
-                ys.append(pts @ A[:, k].transpose(-1, -2) + b[:, k, None, :])
-            else:
-                ys.append(pts @ A[k].T + b[k])
+            # A[..., k, :, :] is (3, 3) or (F, 3, 3), b[..., k, None, :] (1, 3) or (F, 1, 3)
+            ys.append(pts @ A[..., k, :, :].transpose(-1, -2) + b[..., k, None, :])
         y = ys[0] if len(ys) == 1 else torch.cat(ys, dim=1)
         return y, coeff, uv, A
 
@@ -453,7 +450,7 @@ class JetModel(DeformationModel):
             zv = (jets.monomial_derivatives(q, self.max_order, 0, 1) * c).sum(-1)
             n = torch.stack([-zu, -zv, torch.ones_like(zu)], dim=-1)
             n = n / n.norm(dim=-1, keepdim=True)
-            Ak = A[:, kp] if A.ndim == 4 else A[kp]  # scaled rotations: normalise after
+            Ak = A[..., kp, :, :]  # (P, 3, 3) or (F, P, 3, 3) scaled rotations: normalise after
             m = (Ak @ n[..., None])[..., 0]  # (F, P, 3)
             normals.append(m / m.norm(dim=-1, keepdim=True))
         cos = (normals[0] * normals[1]).sum(-1)
