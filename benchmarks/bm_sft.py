@@ -17,8 +17,10 @@ rate 1e-3): frame period (iterations), patience, window size, jet order (incl. `
 the thesis' rigid learning rate (1e-4) for PolySfT; frame period and window size for the
 baseline, and the cheap end of both frontiers (window 1 with frame periods 70 and 100; the
 baseline at window 1 with period 100 and without the Adam warm-up, which costs it accuracy).
-The base configurations run on every sequence, the sweeps
-on ``--sweep-kinds`` (bend and fold); the frontier averages over the sweep kinds.
+The base configurations (PolySfT with its default ``patches="auto"``, which gives the
+sheets one patch and the ``curl`` tube several; 4 patches; the baseline) run on every
+sequence, the thesis' single patch also on ``curl``, the sweeps on ``--sweep-kinds`` (bend
+and fold); the frontier averages over the sweep kinds.
 
 A memory run processes a long tiny sequence (``--memory-frames``, default 500, 48 px) and
 records the resident set size after every frame.
@@ -86,14 +88,18 @@ BASE_POLY = {"method": "polysft", "window": 3, "patience": 30, "frame_period": 2
 BASE_VERT = {"method": "vertex", "window": 3, "patience": 30, "frame_period": 200}
 
 
-def configs(quick: bool) -> list[tuple[str, str, dict, bool]]:
-    """(label, family, settings, on_all_kinds)."""
+def configs(quick: bool) -> list[tuple[str, str, dict, bool | tuple[str, ...]]]:
+    """(label, family, settings, where): where = True (every sequence), False (the sweep
+    sequences) or a tuple of sequence kinds (those of them that are benchmarked)."""
     out = [
         ("polysft base", "polysft", dict(BASE_POLY), True),
         ("vertex base", "vertex", dict(BASE_VERT), True),
     ]
     # several patches, each with its own rigid motion tied by the boundary term (eq. (51))
     out.append(("polysft patches 4", "polysft", {**BASE_POLY, "patches": 4}, True))
+    # the base chooses its patches ("auto": one for a sheet); the thesis' single patch on the
+    # template that is no sheet
+    out.append(("polysft patches 1", "polysft", {**BASE_POLY, "patches": 1}, ("curl",)))
     for p in (50, 100, 300) if not quick else (50, 300):
         out.append((f"polysft period {p}", "polysft", {**BASE_POLY, "frame_period": p}, False))
     for p in (50, 300):
@@ -135,6 +141,7 @@ def run_config(seq: Path, settings: dict, frames: int) -> dict:
     with tempfile.TemporaryDirectory(prefix="bm_sft_") as tmp:
         res = run_sft(seq, tmp, st, resume=False, progress=False, max_frames=frames, charts=False)
         vis = visible_errors(seq, Path(tmp) / "meshes", frames)
+        model = json.loads((Path(tmp) / "metrics.json").read_text())["model"]
     rows = res.rows
     s = res.summary
     return {
@@ -149,6 +156,7 @@ def run_config(seq: Path, settings: dict, frames: int) -> dict:
         "cpu_seconds": s["cpu_seconds"],
         "per_frame_e_3d": [r["e_3d"] for r in rows],
         "orders": [r["order"] for r in rows],
+        "patches": model.get("patches"),
         **vis,
     }
 
@@ -291,7 +299,8 @@ def main(argv: list[str] | None = None) -> int:
 
     quick = a.quick
     frames = a.frames or (6 if quick else 8)
-    kinds = a.kinds or (["bend", "cloth"] if quick else ["bend", "roll", "swave", "fold", "cloth"])
+    kinds = a.kinds or (["bend", "cloth"] if quick
+                         else ["bend", "roll", "swave", "fold", "cloth", "curl"])
     sweep_kinds = a.sweep_kinds or (["bend"] if quick else ["bend", "fold"])
     grid = tuple(a.grid) if a.grid else ((30, 23) if quick else (60, 45))
     mem_frames = a.memory_frames if a.memory_frames is not None else (100 if quick else 500)
@@ -304,8 +313,10 @@ def main(argv: list[str] | None = None) -> int:
     }
 
     jobs = []
-    for label, fam, st, on_all in configs(quick):
-        for k in kinds if on_all else sweep_kinds:
+    for label, fam, st, where in configs(quick):
+        on = (kinds if where is True else sweep_kinds if where is False
+              else [k for k in kinds if k in where])
+        for k in on:
             jobs.append((label, fam, st, k))
     # the costliest runs first (better packing over the workers)
     jobs.sort(key=lambda j: -j[2]["frame_period"] * j[2]["window"])
@@ -368,13 +379,15 @@ def main(argv: list[str] | None = None) -> int:
     t_reach = min((v["cpu_seconds"] for v in reach), default=float("nan"))
     # per-sequence targets of the base PolySfT configuration
     vert_rows = {r["kind"]: r for r in results if r["config"] == "vertex base"}
-    base_rows = [r for r in results if r["config"] in ("polysft base", "polysft patches 4")
+    base_rows = [r for r in results
+                 if r["config"] in ("polysft base", "polysft patches 4", "polysft patches 1")
                  and r["kind"] in vert_rows]
     targets = {
         "per_sequence": [
             {
                 "config": r["config"],
                 "kind": r["kind"],
+                "patches": r.get("patches"),
                 "ratio_visible": r.get("ratio_visible", float("nan")),
                 "e_n_visible": r.get("e_n_visible", float("nan")),
                 "max_hidden_fraction": max(r.get("hidden_fraction", [float("nan")])),
@@ -494,7 +507,8 @@ def _print(agg, targets, mem):
     print("PolySfT per sequence (targets: ratio <= 0.25, e_n <= 5 deg, <= 10 s/frame):")
     for r in targets["per_sequence"]:
         print(
-            f"  {r['config']:<18} {r['kind']:<6} ratio {r['ratio']:.3f}  e_n {r['e_n']:.2f}  "
+            f"  {r['config']:<18} {r['kind']:<6} K={r['patches']} "
+            f"ratio {r['ratio']:.3f}  e_n {r['e_n']:.2f}  "
             f"{r['seconds']:.2f} s ({r['cpu_seconds']:.2f} cpu)  visible-only ratio "
             f"{r['ratio_visible']:.3f} e_n {r['e_n_visible']:.2f}"
             f" (hidden <= {100 * r['max_hidden_fraction']:.0f} %)"

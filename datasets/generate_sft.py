@@ -12,6 +12,8 @@ Deformations of the sheet (``--kind``), all functions of the time ``t`` in [0, 1
 ``roll``    isometric: one end rolls into a cylinder of shrinking radius
 ``swave``   isometric: an S-shaped wave travelling across the sheet
 ``fold``    isometric: a rounded fold along the diagonal closing to about 75 deg
+``curl``    isometric, not a sheet: a C-shaped open tube (270 deg, radius 5 cm) opening to
+            190 deg and rippling; its template is no height graph over any plane
 ``cloth``   nearly isometric: moving Gaussian bumps and a travelling ripple (strain <= 1.2 %)
 ``small``   isometric: a gentle bend (test sequence, small deformation)
 ``rigid``   no deformation, rigid motion only (test sequence)
@@ -34,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-KINDS = ("bend", "roll", "swave", "fold", "cloth", "small", "rigid")
+KINDS = ("bend", "roll", "swave", "fold", "cloth", "curl", "small", "rigid")
 
 
 # --------------------------------------------------------------------------------------------
@@ -143,6 +145,13 @@ def deform(kind: str, ab: np.ndarray, t: float, size: tuple[float, float]) -> np
         theta = np.arctan2(h, w)  # the diagonal
         phi, width = np.radians(75.0) * t, 0.035
         return developable(ab, theta, lambda s: phi * smoothstep((s + width / 2) / width), sr)
+    if kind == "curl":
+        # turning angle 270 deg -> 189 deg over the width, centred on the sheet; the tube
+        # opens towards the camera (negative curvature in the object frame)
+        kappa = 1.5 * np.pi / w * (1.0 - 0.3 * t)
+        ripple = 0.3 * np.sin(np.pi * t)
+        return developable(ab, np.pi / 2,
+                           lambda s: -kappa * s + ripple * np.sin(2 * np.pi * s / w), sr)
     if kind == "cloth":
         out = np.zeros((len(ab), 3))
         out[:, :2] = ab

@@ -638,6 +638,11 @@ class PatchMetrics:
         Share of the patch's triangles (all three corners in the patch) whose orientation in
         the patch's uv plane is opposite to the patch's dominant orientation, i.e. where the
         height-graph assumption breaks; None for a point cloud.
+    max_tilt : np.ndarray or None
+        Largest angle (degrees, in ``[0, 180]``) between the normal of a triangle touching the
+        patch (at least one corner in it) and the patch's axis (its frame's z, oriented like
+        the triangles). Above 90 the triangle folds over the patch plane; near 90 the height
+        graph is steep and ill-conditioned. None for a point cloud.
     n_points : np.ndarray
         Points per patch (int64).
     order : np.ndarray
@@ -649,6 +654,7 @@ class PatchMetrics:
     boundary_gap: np.ndarray
     boundary_normal_angle: np.ndarray
     foldover: np.ndarray | None
+    max_tilt: np.ndarray | None
     n_points: np.ndarray
     order: np.ndarray
 
@@ -669,7 +675,29 @@ class PatchMetrics:
         if self.foldover is not None:
             out["foldover_mean"] = float(self.foldover.mean())
             out["foldover_patches"] = int((self.foldover > 0).sum())
+        if self.max_tilt is not None:
+            out["max_tilt"] = float(self.max_tilt.max())
         return out
+
+
+def _max_tilt(v: torch.Tensor, f: torch.Tensor, labels: torch.Tensor,
+              rotation: torch.Tensor) -> np.ndarray:
+    """``(K,)`` largest angle (degrees) between a triangle touching a patch and its axis.
+
+    Triangles without area are skipped; a patch without a triangle gets 0.
+    """
+    K = int(rotation.shape[0])
+    p = v[f]
+    n = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    ln = n.norm(dim=-1)
+    ok = ln > 0
+    n, fl = n[ok] / ln[ok, None], labels[f[ok]]  # (Fo, 3), (Fo, 3)
+    out = torch.zeros(K, dtype=torch.float64)
+    for c in range(3):
+        axis = rotation[fl[:, c], :, 2]
+        ang = torch.rad2deg(torch.arccos((n * axis).sum(-1).clamp(-1.0, 1.0)))
+        out = out.scatter_reduce(0, fl[:, c], ang.to(torch.float64), "amax")
+    return out.cpu().numpy()
 
 
 def _angle_deg(a: torch.Tensor, b: torch.Tensor, unsigned: bool = True) -> torch.Tensor:
@@ -1248,8 +1276,9 @@ class PatchSet:
                     tot.index_add_(0, own, val).index_add_(0, other, val)
                     cnt = torch.bincount(own, minlength=K) + torch.bincount(other, minlength=K)
                     arr[:] = (tot / cnt.clamp_min(1)).cpu().numpy()
-            fold = None
+            fold = tilt = None
             if self.faces is not None and len(self.faces):
+                tilt = _max_tilt(self.vertices, self.faces, self.labels, self.rotation)
                 f = self.faces
                 lf = self.labels[f]
                 inside = (lf[:, 0] == lf[:, 1]) & (lf[:, 1] == lf[:, 2])
@@ -1273,6 +1302,7 @@ class PatchSet:
             boundary_gap=gap,
             boundary_normal_angle=gang,
             foldover=fold,
+            max_tilt=tilt,
             n_points=n_pts.cpu().numpy().astype(np.int64),
             order=self.orders.cpu().numpy().astype(np.int64),
         )

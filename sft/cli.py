@@ -42,8 +42,9 @@ def _add_settings_args(p: argparse.ArgumentParser) -> None:
         "window": "sliding-window size W",
         "patience": "iterations without improvement that end a window",
         "frame_period": "most iterations per window",
-        "patches": "jet patches (1: the whole template); several for templates that bend or "
-                   "roll further than a height graph over one plane",
+        "patches": "jet patches, or 'auto' (default): the fewest (1, 2, 3, ...) whose every "
+                   "triangle is within --max-tilt of its patch's axis (1 for a sheet)",
+        "max_tilt": "degrees, < 90: steepest triangle a patch may hold with --patches auto",
         "patch_rigid": "true/false: a rigid motion per patch, tied by the boundary term",
         "freeze": "comma-separated parameters kept fixed, e.g. d_alpha,d_uv",
         "carry_adam": "true/false: keep Adam moments across windows",
@@ -79,12 +80,13 @@ def _settings_from(args: argparse.Namespace, base: dict | None = None):
         v = getattr(args, f.name, None)
         if v is not None:
             kw[f.name] = v
-    if "order" in kw and kw["order"] != "auto":
-        try:
-            kw["order"] = int(kw["order"])
-        except ValueError as exc:
-            msg = f"--order: expected an integer or 'auto', got {kw['order']!r}"
-            raise ValueError(msg) from exc
+    for name in ("order", "patches"):
+        if name in kw and kw[name] != "auto":
+            try:
+                kw[name] = int(kw[name])
+            except ValueError as exc:
+                msg = f"--{name}: expected an integer or 'auto', got {kw[name]!r}"
+                raise ValueError(msg) from exc
     return SfTSettings(**kw)
 
 

@@ -36,13 +36,15 @@ coordinates (scene units).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+import warnings
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
 
 from polygeo import jets
-from polygeo._validate import as_tensor, check_finite, check_int, check_shape
+from polygeo._validate import as_tensor, check_finite, check_int, check_positive, check_shape
 from polygeo.frames import Orientation, axis_angle_to_matrix, pca_frames
 
 __all__ = [
@@ -52,10 +54,19 @@ __all__ = [
     "DeformationModel",
     "build_model",
     "ORDER_AUTO",
+    "PATCHES_AUTO",
 ]
 
 #: Value of ``order`` that lets the optimiser raise the jet order on plateaus.
 ORDER_AUTO = "auto"
+
+#: Value of ``patches`` that picks the fewest patches each of which is a height graph.
+PATCHES_AUTO = "auto"
+
+#: Default largest tilt (degrees) of a triangle from its patch's axis for ``patches="auto"``.
+#: One patch tracks sheets whose graph tilts to about 80 degrees (the ``bend`` sequence), so
+#: 70 at the template leaves room for the deformation that follows.
+MAX_TILT = 70.0
 
 
 def _global_frame(verts: torch.Tensor) -> Orientation:
@@ -96,6 +107,10 @@ class JetTemplate:
         The global frame ``O_g`` (one item).
     fit_rms : float
         RMS of ``residual`` in scene units (how far the jets are from the template).
+    max_tilt : float
+        Largest angle (degrees) between a template triangle and the axis of a patch it
+        touches (:attr:`polygeo.patches.PatchMetrics.max_tilt`); above 90 a patch folds over
+        its plane. NaN when not computed.
     """
 
     orientation: Orientation
@@ -109,6 +124,7 @@ class JetTemplate:
     pairs: torch.Tensor
     frame: Orientation
     fit_rms: float
+    max_tilt: float = float("nan")
 
     @property
     def n_patches(self) -> int:
@@ -133,8 +149,10 @@ class JetTemplate:
         verts,
         faces,
         order: int = 4,
-        patches: int = 1,
+        patches: int | str = 1,
         *,
+        max_tilt: float = MAX_TILT,
+        max_patches: int = 64,
         seed: int = 0,
     ) -> JetTemplate:
         """Fit PolyFit patches (:class:`polygeo.patches.PatchSet`, PCA frames) to a template.
@@ -147,8 +165,19 @@ class JetTemplate:
             ``(F, 3)`` triangles.
         order : int
             Jet order in ``[1, 6]``.
-        patches : int
-            Number of patches ``K`` (1: the whole template is one patch).
+        patches : int or "auto"
+            Number of patches ``K`` (1: the whole template is one patch), or ``"auto"``: the
+            fewest of 1, 2, ..., 8, 12, 18, ... (at most ``max_patches``) for which every
+            triangle lies within ``max_tilt`` of the axis of each patch it touches, i.e.
+            every patch is a height graph with room to bend further. A sheet that is not
+            bent past about twice ``max_tilt`` gets one patch (the thesis' model); a tube, a
+            cap or a crumpled cloth gets several.
+        max_tilt : float
+            Largest tilt in degrees, in ``(0, 90)``, for ``"auto"``.
+        max_patches : int
+            Largest count tried by ``"auto"`` (also capped so that every patch keeps at least
+            twice as many vertices as jet coefficients). When even that count leaves a steeper
+            triangle, it is used and a ``RuntimeWarning`` says so.
         seed : int
             Seed of the partition (``patches > 1``).
 
@@ -160,8 +189,9 @@ class JetTemplate:
         Raises
         ------
         ValueError
-            On bad shapes, non-finite vertices, an order out of range, or fewer vertices in
-            the template than coefficients of the jet.
+            On bad shapes, non-finite vertices, an order out of range, a bad ``patches``,
+            ``max_tilt`` or ``max_patches``, or fewer vertices in the template than
+            coefficients of the jet.
         """
         from polygeo.patches import PatchSet
 
@@ -169,16 +199,45 @@ class JetTemplate:
         check_shape(v, "verts", ("V", 3))
         check_finite(v, "verts")
         order = check_int(order, "order", low=1, high=jets.MAX_ORDER)
-        patches = check_int(patches, "patches", low=1, high=max(1, v.shape[0]))
         m = jets.n_coeffs(order)
         if v.shape[0] < m:
             raise ValueError(
                 f"verts: the template has {v.shape[0]} vertices, fewer than the {m} "
                 f"coefficients of an order-{order} jet; use a lower order"
             )
-        ps = PatchSet.fit(v, np.asarray(faces), n_patches=patches, order=order, orient="pca",
-                          seed=seed)
-        return cls.from_patchset(ps, v)
+        f = np.asarray(faces)
+        if isinstance(patches, str) and patches != PATCHES_AUTO:
+            raise ValueError(f"patches: expected an integer >= 1 or 'auto', got {patches!r}")
+
+        def fit_k(k: int):
+            ps = PatchSet.fit(v, f, n_patches=k, order=order, orient="pca", seed=seed)
+            tilt = ps.metrics(boundary=False).max_tilt
+            return ps, float("nan") if tilt is None else float(tilt.max())
+
+        if patches == PATCHES_AUTO:
+            max_tilt = check_positive(max_tilt, "max_tilt")
+            if max_tilt >= 90.0:
+                raise ValueError(f"max_tilt: expected degrees in (0, 90), got {max_tilt}")
+            cap = min(check_int(max_patches, "max_patches", low=1),
+                      max(1, v.shape[0] // (2 * m)))
+            k = 1
+            while True:
+                ps, tilt = fit_k(k)
+                if not tilt > max_tilt or k >= cap:
+                    break
+                # the partition is area-driven, not curvature-driven: a count one higher can
+                # place its cuts better, so small counts are tried one by one
+                k = min(k + 1 if k < 8 else math.ceil(1.5 * k), cap)
+            if tilt > max_tilt:
+                warnings.warn(
+                    f"patches='auto': {ps.n_patches} patches (the most tried) still leave a "
+                    f"triangle {tilt:.0f} degrees from its patch's axis (max_tilt "
+                    f"{max_tilt:g}); the template is rough or folded at the scale of its "
+                    "patches", RuntimeWarning, stacklevel=2)
+        else:
+            k = check_int(patches, "patches", low=1, high=max(1, v.shape[0]))
+            ps, tilt = fit_k(k)
+        return replace(cls.from_patchset(ps, v), max_tilt=tilt)
 
     @classmethod
     def from_patchset(cls, ps, verts=None) -> JetTemplate:
@@ -524,7 +583,8 @@ def build_model(
     *,
     order: int | str = 4,
     max_order: int = 6,
-    patches: int = 1,
+    patches: int | str = 1,
+    max_tilt: float = MAX_TILT,
     k_b: float = 1.0,
     k_bn: float = 0.1,
     patch_rigid: bool = True,
@@ -543,8 +603,10 @@ def build_model(
         Jet order; ``"auto"`` starts at 2 and lets the optimiser raise it up to ``max_order``.
     max_order : int
         Highest order for ``"auto"``.
-    patches : int
-        Number of jet patches.
+    patches : int or "auto"
+        Number of jet patches, or ``"auto"`` (see :meth:`JetTemplate.fit`).
+    max_tilt : float
+        Largest tilt (degrees) of a triangle from its patch's axis for ``"auto"``.
     k_b, k_bn : float
         Boundary-consistency weights (several patches).
     patch_rigid : bool
@@ -569,12 +631,12 @@ def build_model(
         raise ValueError(f"method: expected 'polysft' or 'vertex', got {method!r}")
     if order == ORDER_AUTO:
         top = check_int(max_order, "max_order", low=2, high=jets.MAX_ORDER)
-        tmpl = JetTemplate.fit(verts, faces, top, patches, seed=seed)
+        tmpl = JetTemplate.fit(verts, faces, top, patches, max_tilt=max_tilt, seed=seed)
         return JetModel(tmpl, order=2, k_b=k_b, k_bn=k_bn, patch_rigid=patch_rigid,
                         dtype=dtype)
     if isinstance(order, str):
         raise ValueError(f"order: expected an integer in [1, {jets.MAX_ORDER}] or 'auto', "
                          f"got {order!r}")
-    tmpl = JetTemplate.fit(verts, faces, order, patches, seed=seed)
+    tmpl = JetTemplate.fit(verts, faces, order, patches, max_tilt=max_tilt, seed=seed)
     return JetModel(tmpl, k_b=k_b, k_bn=k_bn, patch_rigid=patch_rigid, dtype=dtype)
 

@@ -45,7 +45,7 @@ from polygeo.render import RasterSettings
 from .data import Sequence, load_sequence
 from .losses import ImageTerms, Inextensibility, temporal_consistency
 from .metrics import frame_errors, summarize
-from .model import ORDER_AUTO, DeformationModel, build_model
+from .model import MAX_TILT, ORDER_AUTO, PATCHES_AUTO, DeformationModel, JetModel, build_model
 
 __all__ = ["SfTSettings", "SfTResult", "run_sft", "reconstruct_window", "CHECKPOINT_NAME"]
 
@@ -82,15 +82,26 @@ class SfTSettings:
     auto_gain : float
         Relative decrease of the loss's running minimum over ``patience`` iterations below
         which ``"auto"`` raises the order.
-    patches : int
-        Number of jet patches (1: the whole template, thesis default). With several, each
-        patch has its own rigid motion (``patch_rigid``) and the boundary term ties them. On
-        the 8-frame synthetic sequences (period 200) 4 patches lowered the ratio of e_3D to
-        the fixed template's from 0.210 to 0.056 (bend), 0.117 to 0.071 (cloth), 0.154 to
-        0.096 (fold) and 0.262 to 0.235 (roll, which rolls 209 degrees: no height graph over
-        one plane), at about 10 % more time per frame, but raised it from 0.114 to 0.519 on
+    patches : int or "auto"
+        Number of jet patches. Default ``"auto"``: the fewest (1, 2, ..., 8, 12, 18, ...)
+        whose every triangle lies within ``max_tilt`` of the axis of each patch it touches
+        (:meth:`sft.model.JetTemplate.fit`): one patch, the thesis' model, for a sheet that
+        is not already bent past about 140 degrees; several for a tube, a cap or a crumpled
+        cloth, which are no height graph over one plane. On the 8-frame ``curl`` sequence (a
+        270-degree tube; period 200) one patch folds over its plane and diverges (ratio of
+        e_3D to the fixed template's 2.49, e_n 21.1 degrees) while "auto" picks 2 (0.098,
+        2.92; 4: 0.067, 8: 0.098, 16: 0.153; 3 patches, one folded over: 1.56). With
+        several, each patch has its own rigid motion (``patch_rigid``) and the boundary term
+        ties them. On the sheets (one patch under "auto") 4 patches lowered the ratio from
+        0.210 to 0.056 (bend), 0.117 to 0.071 (cloth), 0.154 to 0.096 (fold) and 0.262 to
+        0.235 (roll, which rolls 209 degrees after the template: the choice is made on the
+        template), at about 10 % more time per frame, but raised it from 0.114 to 0.519 on
         the travelling S-wave (the patches drift in depth while their renders still match
-        the frames). The single patch stays the default because it never failed like that.
+        the frames), hence one patch wherever one is a height graph.
+    max_tilt : float
+        Degrees in ``(0, 90)`` for ``patches="auto"`` (default 70: one patch tracks sheets
+        whose graph tilts to about 80 degrees during the ``bend`` sequence, so 70 at the
+        template leaves room for the deformation).
     window : int
         Sliding-window size ``W``.
     patience : int
@@ -185,7 +196,8 @@ class SfTSettings:
     order: int | str = 6
     max_order: int = 6
     auto_gain: float = 0.03
-    patches: int = 1
+    patches: int | str = PATCHES_AUTO
+    max_tilt: float = MAX_TILT
     window: int = 3
     patience: int = 30
     frame_period: int = 200
@@ -222,7 +234,13 @@ class SfTSettings:
         if self.order != ORDER_AUTO:
             self.order = check_int(self.order, "order", low=1, high=6)
         self.max_order = check_int(self.max_order, "max_order", low=2, high=6)
-        self.patches = check_int(self.patches, "patches", low=1)
+        if isinstance(self.patches, str) and self.patches != PATCHES_AUTO:
+            raise ValueError(f"patches: expected an integer >= 1 or 'auto', got {self.patches!r}")
+        if self.patches != PATCHES_AUTO:
+            self.patches = check_int(self.patches, "patches", low=1)
+        self.max_tilt = check_positive(self.max_tilt, "max_tilt")
+        if self.max_tilt >= 90.0:
+            raise ValueError(f"max_tilt: expected degrees in (0, 90), got {self.max_tilt}")
         self.window = check_int(self.window, "window", low=1)
         self.patience = check_int(self.patience, "patience", low=1)
         self.frame_period = check_int(self.frame_period, "frame_period", low=1)
@@ -495,7 +513,8 @@ def run_sft(
     complete = len(rows) == T
     summary = summarize(rows)
     record = {"sequence": str(seq.root), "frames": T, "complete": complete,
-              "settings": sdict, "mean": summary, "per_frame": rows}
+              "settings": sdict, "model": _model_info(model), "mean": summary,
+              "per_frame": rows}
     tmp = out / "metrics.json.part"
     tmp.write_text(json.dumps(record, indent=1) + "\n")
     os.replace(tmp, out / "metrics.json")
@@ -506,10 +525,22 @@ def run_sft(
     return SfTResult(out_dir=out, rows=rows, summary=summary, complete=complete)
 
 
+def _model_info(model: DeformationModel) -> dict:
+    """What ``metrics.json`` records of the model (patches chosen, their steepest tilt)."""
+    if not isinstance(model, JetModel):
+        return {"name": model.name}
+    t = model.template
+    tilt = t.max_tilt
+    return {"name": model.name, "patches": t.n_patches, "order": t.order,
+            "max_tilt_deg": None if tilt != tilt else round(tilt, 2),
+            "fit_rms": t.fit_rms}
+
+
 def _build_model(st: SfTSettings, template) -> DeformationModel:
     """The deformation model of ``st`` for a sequence's template."""
     return build_model(st.method, template.verts, template.faces, order=st.order,
-                       max_order=st.max_order, patches=st.patches, k_b=st.k_b, k_bn=st.k_bn,
+                       max_order=st.max_order, patches=st.patches, max_tilt=st.max_tilt,
+                       k_b=st.k_b, k_bn=st.k_bn,
                        patch_rigid=st.patch_rigid, seed=st.seed, dtype=st.torch_dtype)
 
 

@@ -178,6 +178,22 @@ def test_foldover_detected_where_the_patch_is_not_a_height_graph():
     assert flat.metrics().foldover[0] == 0.0
 
 
+@pytest.mark.parametrize("arc", [60.0, 150.0, 300.0])
+def test_max_tilt_of_an_arc_is_half_the_arc_less_half_a_facet(arc):
+    # a sheet bent into a circular arc (wide along the rulings, so that the PCA axis is the
+    # arc's bisector): its steepest facet is the last one, whose normal is tilted by half
+    # the arc less half a facet; above 90 degrees the triangles fold over the patch plane
+    n = 41
+    x, y, f = _grid_sheet(n, 12, 1.0, 2.0)
+    t = x * np.deg2rad(arc) / 2
+    v = np.stack([np.sin(t), y, 1.0 - np.cos(t)], 1)
+    m = PatchSet.fit(v, f, n_patches=1, order=2).metrics(boundary=False)
+    assert m.max_tilt[0] == pytest.approx(arc / 2 - arc / (n - 1) / 2, abs=1e-6)
+    assert m.summary()["max_tilt"] == m.max_tilt[0]
+    assert (m.foldover[0] > 0) == (arc / 2 > 90)
+    assert PatchSet.fit(v, None, n_patches=1, order=2).metrics().max_tilt is None
+
+
 # ------------------------------------------------------------------ independent / batched
 
 

@@ -15,7 +15,7 @@ def _max_strain(g, kind, n, t):
     return np.abs(edge_lengths(g.deform(kind, ab, t, (0.24, 0.18)), e) / l0 - 1).max()
 
 
-@pytest.mark.parametrize("kind", ["bend", "roll", "swave", "fold", "small", "rigid"])
+@pytest.mark.parametrize("kind", ["bend", "roll", "swave", "fold", "curl", "small", "rigid"])
 def test_isometric_kinds_preserve_lengths(generator_module, kind):
     """Edges are chords of the bent sheet, shorter by (kappa l)^2 / 24: the strain is small
     and converges at second order under refinement (the surface itself is isometric)."""

@@ -240,3 +240,57 @@ def test_patch_rigid_motions_fit_a_sharp_fold():
     halves = (p["p_rot"][0, 0] - p["p_rot"][0, 1]).detach().norm()
     assert float(halves) > np.radians(40.0)  # the patch motions took a large part of it
     assert float(reg) < 1e-3
+
+
+def _tilts(template, verts, faces):
+    """Largest angle (deg) between a triangle and the axis of a patch holding one of its
+    corners, computed here from the patch frames (independently of PatchMetrics)."""
+    R = template.orientation.R.numpy()
+    labels = np.empty(len(verts), dtype=np.int64)
+    labels[template.sample_vertex.numpy()[template.primary.numpy()]] = \
+        template.sample_patch.numpy()[template.primary.numpy()]
+    p = verts[faces]
+    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    out = 0.0
+    for c in range(3):
+        axis = R[labels[faces[:, c]], :, 2]
+        out = max(out, np.degrees(np.arccos(np.clip((n * axis).sum(1), -1, 1))).max())
+    return out
+
+
+def test_auto_patches_one_for_a_sheet_several_for_a_tube():
+    v, f = sheet(41, 15, bend=4.0)  # a gently bent sheet (radius 25 cm, 55 degrees)
+    t = JetTemplate.fit(v, f, 4, "auto")
+    assert t.n_patches == 1
+    assert t.max_tilt == pytest.approx(_tilts(t, v, f), abs=1e-9) and t.max_tilt < 30
+    # the same sheet rolled into a C-shaped tube (270 degrees): no height graph over one
+    # plane (a single patch folds over), so "auto" splits it until every patch is steep
+    # by at most max_tilt
+    v, f = sheet(41, 15, bend=1.5 * np.pi / 0.24)
+    one = JetTemplate.fit(v, f, 4, 1)
+    assert one.max_tilt > 90
+    for max_tilt in (70.0, 45.0):
+        t = JetTemplate.fit(v, f, 4, "auto", max_tilt=max_tilt)
+        assert t.n_patches > 1
+        assert t.max_tilt == pytest.approx(_tilts(t, v, f), abs=1e-9)
+        assert t.max_tilt <= max_tilt
+        # the fewest of the counts tried (1, 2, ..., 8, 12, 18, ...): the count before fails
+        prev = t.n_patches - 1 if t.n_patches <= 8 else {12: 8, 18: 12, 27: 18}[t.n_patches]
+        assert JetTemplate.fit(v, f, 4, prev).max_tilt > max_tilt
+        m = JetModel(t, dtype=torch.float64)
+        X = m.vertices(stack(m.init_params(), 1))[0].numpy()
+        np.testing.assert_allclose(X, v, atol=1e-12)
+
+
+def test_auto_patches_warns_when_the_cap_leaves_steep_patches():
+    v, f = sheet(41, 15, bend=1.5 * np.pi / 0.24)
+    with pytest.warns(RuntimeWarning, match="patches='auto': 2 patches \\(the most tried\\)"):
+        t = JetTemplate.fit(v, f, 4, "auto", max_tilt=20.0, max_patches=2)
+    assert t.n_patches == 2 and t.max_tilt > 20
+    with pytest.raises(ValueError, match="patches: expected an integer >= 1 or 'auto'"):
+        JetTemplate.fit(v, f, 4, "some")
+    with pytest.raises(ValueError, match="max_tilt: expected degrees in \\(0, 90\\)"):
+        JetTemplate.fit(v, f, 4, "auto", max_tilt=120.0)
+    with pytest.raises(ValueError, match="max_patches: expected an integer in"):
+        JetTemplate.fit(v, f, 4, "auto", max_patches=0)

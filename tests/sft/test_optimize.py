@@ -97,6 +97,8 @@ def test_outputs(make_sequence, tmp_path):
     assert mesh.faces is not None and len(mesh.points) == seq.template.n_verts
     rec = json.loads((out / "metrics.json").read_text())
     assert rec["frames"] == 3 and rec["complete"] and len(rec["per_frame"]) == 3
+    # a nearly flat sheet: patches="auto" chose the thesis' single patch, and says so
+    assert rec["model"]["patches"] == 1 and rec["model"]["max_tilt_deg"] < st.max_tilt
     for key in ("e_3d", "e_3d_template", "e_n", "rmse", "iterations", "seconds",
                 "cpu_seconds"):
         assert key in rec["mean"] and key in rec["per_frame"][0]
@@ -144,6 +146,15 @@ def test_settings_validation():
         SfTSettings(warmup=-1)
     with pytest.raises(ValueError, match="sil_kind: expected one of"):
         SfTSettings(sil_kind="huber")
+    with pytest.raises(ValueError, match="patches: expected an integer >= 1 or 'auto'"):
+        SfTSettings(patches="many")
+    with pytest.raises(ValueError, match="patches: expected an integer in"):
+        SfTSettings(patches=0)
+    with pytest.raises(ValueError, match="max_tilt: expected degrees in \\(0, 90\\)"):
+        SfTSettings(max_tilt=90.0)
+    with pytest.raises(ValueError, match="max_tilt: expected a finite value > 0"):
+        SfTSettings(max_tilt=0.0)
+    assert SfTSettings().patches == "auto" and SfTSettings(patches=3).patches == 3
     assert SfTSettings(order="auto").order == "auto"
     assert SfTSettings(dtype="float64").torch_dtype == torch.float64
 
