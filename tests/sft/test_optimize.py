@@ -171,14 +171,26 @@ def test_cli_runs_and_writes(make_sequence, tmp_path, capsys):
 
     seq = make_sequence("small", 4, size=64, grid=(12, 9))
     code = main(["sft", str(seq), "-o", str(tmp_path / "cli"), "--max-frames", "2",
-                 "--patience", "3", "--frame-period", "6", "--order", "3", "--quiet"])
+                 "--patience", "3", "--frame-period", "6", "--order", "3", "--patches", "2",
+                 "--max-tilt", "60", "--quiet"])
     assert code == 0
     out = capsys.readouterr().out
     assert "e_3D" in out and "polysft" in out
     assert (tmp_path / "cli" / "meshes" / "000001.ply").is_file()
     rec = json.loads((tmp_path / "cli" / "metrics.json").read_text())
     assert rec["settings"]["order"] == 3 and rec["settings"]["patience"] == 3
+    assert rec["settings"]["max_tilt"] == 60.0 and rec["model"]["patches"] == 2
     assert main(["sft", str(seq), "-o", str(tmp_path / "c2"), "--order", "x"]) == 2
+    assert main(["sft", str(seq), "-o", str(tmp_path / "c3"), "--patches", "many"]) == 2
+
+
+def test_demo_target_verdicts():
+    from sft.cli import _meets_targets
+
+    s = {"e_3d": 0.01, "e_3d_template": 0.05, "e_n": 4.0}
+    assert _meets_targets(s)
+    assert not _meets_targets({**s, "e_3d": 0.0126})  # ratio 0.252
+    assert not _meets_targets({**s, "e_n": 5.01})
 
 
 def test_frame_adam_matches_torch_adam():
