@@ -14,8 +14,9 @@ Conventions
   in scene units (metres for the generated sequences); the template has the shape of frame 0.
 - ``K`` is in pixels with the image origin at the top-left pixel corner.
 - Texture coordinates follow the OBJ convention: ``(u, v)`` in ``[0, 1]``, ``v = 0`` at the
-  *bottom* row of the texture image. Only per-vertex texture coordinates are supported (one
-  ``vt`` per vertex; a seam must be cut by duplicating its vertices).
+  *bottom* row of the texture image. A vertex may have different ``vt`` in different faces
+  (UV seams): the template then carries one ``uv`` per face corner and its vertices stay as
+  they are (ground truth and outputs keep their order).
 - Ground-truth PLY files may hold faces or only vertices; only the vertices are read.
 
 Everything that can be checked without decoding the frames is checked by
@@ -71,7 +72,10 @@ class Template:
     faces : np.ndarray
         ``(F, 3)`` int64 vertex indices, counter-clockwise seen from the front.
     uvs : np.ndarray or None
-        ``(V, 2)`` float64 texture coordinates in ``[0, 1]`` (OBJ convention, v up).
+        Texture coordinates in ``[0, 1]`` (OBJ convention, v up), float64: ``(V, 2)`` per
+        vertex, or ``(F, 3, 2)`` per face corner for a template with UV seams (a vertex on a
+        seam has a different ``uv`` in the faces on either side; the geometry stays one
+        vertex, so ground truth and outputs keep the template's vertex order).
     texture : np.ndarray or None
         ``(Ht, Wt, 3)`` float32 RGB in ``[0, 1]``, row 0 at the top of the image.
     colors : np.ndarray or None
@@ -110,9 +114,12 @@ def _check_template(t: Template, where: str) -> None:
     if t.texture is None and t.colors is None:
         raise ValueError(f"{where}: the template has neither a texture nor vertex colours")
     if t.texture is not None:
-        if t.uvs is None or t.uvs.shape != (v.shape[0], 2):
+        if t.uvs is None or t.uvs.shape not in ((v.shape[0], 2), (f.shape[0], 3, 2)):
             got = None if t.uvs is None else t.uvs.shape
-            raise ValueError(f"{where}: a texture needs (V, 2) = ({v.shape[0]}, 2) uvs, got {got}")
+            raise ValueError(
+                f"{where}: a texture needs uvs per vertex (V, 2) = ({v.shape[0]}, 2) or per "
+                f"face corner (F, 3, 2) = ({f.shape[0]}, 3, 2), got {got}"
+            )
         if not np.isfinite(t.uvs).all():
             raise ValueError(f"{where}: non-finite texture coordinates")
         if t.texture.ndim != 3 or t.texture.shape[2] != 3 or min(t.texture.shape[:2]) < 1:
@@ -218,13 +225,10 @@ def _load_obj(path: Path) -> Template:
         if f.size and (f.min() < 0 or f.max() >= len(v)):
             raise ValueError(f"{path}: face indices must lie in [1, {len(v)}]")
         uvs[f.reshape(-1)] = vt[fvt.reshape(-1)]
-        back = vt[fvt.reshape(-1)]
-        if not np.allclose(uvs[f.reshape(-1)], back, atol=1e-9):
-            raise ValueError(
-                f"{path}: a vertex has several texture coordinates (a UV seam); only per-vertex "
-                "uvs are supported: duplicate the seam vertices"
-            )
-        if np.isnan(uvs).any():
+        corner = vt[fvt]  # (F, 3, 2)
+        if not np.allclose(uvs[f], corner, atol=1e-9):
+            uvs = corner  # UV seams: per face corner
+        elif np.isnan(uvs).any():
             raise ValueError(f"{path}: {int(np.isnan(uvs[:, 0]).sum())} vertices are in no face")
         texture = _read_image(tex_path, "texture")
     return Template(verts=v, faces=f, uvs=uvs, texture=texture, colors=col)
@@ -273,8 +277,9 @@ def load_template(path: str | os.PathLike) -> Template:
     FileNotFoundError
         If the file does not exist.
     ValueError
-        If the file cannot be parsed, is empty, has out-of-range faces, UV seams, or has
-        neither a texture nor vertex colours (the message names the file).
+        If the file cannot be parsed, is empty, has out-of-range faces, faces without ``vt``
+        under a texture, or has neither a texture nor vertex colours (the message names the
+        file).
     """
     p = Path(path)
     if not p.is_file():
@@ -549,9 +554,14 @@ def _write_obj(root: Path, t: Template) -> None:
         else:
             lines.append(f"v {p[0]:.9g} {p[1]:.9g} {p[2]:.9g}")
     if t.textured:
-        lines += [f"vt {u:.9g} {v:.9g}" for u, v in t.uvs]
+        lines += [f"vt {u:.9g} {v:.9g}" for u, v in t.uvs.reshape(-1, 2)]
         lines.append("usemtl sheet")
-        lines += [f"f {a + 1}/{a + 1} {b + 1}/{b + 1} {c + 1}/{c + 1}" for a, b, c in t.faces]
+        if t.uvs.ndim == 2:  # per vertex: vt index = vertex index
+            lines += [f"f {a + 1}/{a + 1} {b + 1}/{b + 1} {c + 1}/{c + 1}"
+                      for a, b, c in t.faces]
+        else:  # per face corner: vt 3i + k is corner k of face i
+            lines += [f"f {a + 1}/{3 * i + 1} {b + 1}/{3 * i + 2} {c + 1}/{3 * i + 3}"
+                      for i, (a, b, c) in enumerate(t.faces)]
         (root / "template.mtl").write_text(
             "newmtl sheet\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\nmap_Kd texture.png\n"
         )

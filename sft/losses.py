@@ -46,7 +46,8 @@ def prefilter_texture(texture: np.ndarray, uvs: np.ndarray, verts: np.ndarray,
     texture : np.ndarray
         ``(Ht, Wt, 3)`` float texture.
     uvs : np.ndarray
-        ``(V, 2)`` texture coordinates in ``[0, 1]``.
+        Texture coordinates in ``[0, 1]``: ``(V, 2)`` per vertex or ``(F, 3, 2)`` per face
+        corner.
     verts : np.ndarray
         ``(V, 3)`` camera-frame vertices.
     faces : np.ndarray
@@ -66,13 +67,13 @@ def prefilter_texture(texture: np.ndarray, uvs: np.ndarray, verts: np.ndarray,
     Ht, Wt = texture.shape[:2]
     p = verts @ K.T
     px = p[:, :2] / p[:, 2:3]
-    t = uvs * np.array([Wt, Ht])
+    t = np.asarray(uvs) * np.array([Wt, Ht])
 
-    def area(q):
-        a, b, c = q[faces[:, 0]], q[faces[:, 1]], q[faces[:, 2]]
+    def area(q):  # q: (F, 3, 2) triangle corners
+        a, b, c = q[:, 0], q[:, 1], q[:, 2]
         return 0.5 * np.abs((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0])
 
-    ai, at = area(px), area(t)
+    ai, at = area(px[faces]), area(t if t.ndim == 3 else t[faces])
     ok = ai > 1e-9
     if not ok.any():
         return texture

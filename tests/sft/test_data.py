@@ -196,16 +196,54 @@ def test_missing_pieces(tmp_path, seq_dir):
         load_camera(tmp_path / "none.json")
 
 
-def test_uv_seam_rejected(seq_dir):
+def seam_template():
+    """The sheet of ``_template`` with its texture atlas cut at the second column of
+    vertices: the first column of quads maps to the right end of the image, the rest to
+    the left (a UV seam: those 3 vertices have two uvs each). Also returns the same
+    template with its seam vertices duplicated (per-vertex uvs) and the vertex map."""
+    t = _template()
+    col = np.arange(12) % 4
+    corner_col = col[t.faces]  # (F, 3)
+    left = corner_col.max(1) <= 1  # faces of the first column of quads
+    u = np.where(left[:, None], 0.8 + 0.2 * corner_col, 0.25 * (corner_col - 1))
+    v = (t.verts[t.faces][..., 1] + 0.04) / 0.08
+    uvs = np.stack([u, v], -1)  # (F, 3, 2)
+    seam = Template(verts=t.verts, faces=t.faces, uvs=uvs, texture=t.texture)
+    # duplicate the seam vertices (column 1) for the faces on the left of the seam
+    dup = {j: 12 + k for k, j in enumerate(np.flatnonzero(col == 1))}
+    faces = np.array([[dup[c] if (lf and c in dup) else c for c in f]
+                      for f, lf in zip(t.faces, left)])
+    vmap = np.concatenate([np.arange(12), np.flatnonzero(col == 1)])
+    per_vertex = np.zeros((len(vmap), 2))
+    per_vertex[faces.reshape(-1)] = uvs.reshape(-1, 2)
+    dupl = Template(verts=t.verts[vmap], faces=faces, uvs=per_vertex, texture=t.texture)
+    return seam, dupl, vmap
+
+
+def test_uv_seams_load_as_face_corner_uvs(tmp_path, seq_dir):
+    seam, _, _ = seam_template()
+    assert seam.faces[0, 1] == seam.faces[2, 0] == 1  # vertex 1 is on the seam:
+    assert not np.allclose(seam.uvs[0, 1], seam.uvs[2, 0])  # two uvs
+    path = write_sequence(tmp_path / "seam", seam, K, W, H, [np.zeros((H, W, 3))])
+    s = load_sequence(path)
+    assert s.template.n_verts == 12 and s.template.uvs.shape == (12, 3, 2)
+    np.testing.assert_allclose(s.template.uvs, seam.uvs, atol=1e-8)
+    np.testing.assert_array_equal(s.template.faces, seam.faces)
+    # a hand-edited file: vertex 1 gets a second texture coordinate in one more face
     path = seq_dir[0]
     text = (path / "template.obj").read_text().splitlines()
-    # give vertex 1 a second texture coordinate in one face
     text.append("vt 0.9 0.9")
     n_vt = sum(1 for ln in text if ln.startswith("vt "))
     text.append(f"f 1/{n_vt} 2/2 5/5")
     (path / "template.obj").write_text("\n".join(text) + "\n")
-    with pytest.raises(ValueError, match="several texture coordinates"):
-        load_sequence(path)
+    t = load_sequence(path).template
+    assert t.uvs.shape == (13, 3, 2)
+    np.testing.assert_allclose(t.uvs[-1], [[0.9, 0.9], seq_dir[1].uvs[1], seq_dir[1].uvs[4]])
+    np.testing.assert_allclose(t.uvs[:12], seq_dir[1].uvs[seq_dir[1].faces])
+    with pytest.raises(ValueError, match="per face corner \\(F, 3, 2\\) = \\(12, 3, 2\\)"):
+        SequenceWriter(tmp_path / "bad", Template(verts=seam.verts, faces=seam.faces,
+                                                  uvs=seam.uvs[:5], texture=seam.texture),
+                       K, W, H)
 
 
 def test_template_without_appearance(tmp_path):

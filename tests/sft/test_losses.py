@@ -71,6 +71,27 @@ def test_image_terms_minimal_at_ground_truth(make_sequence):
     assert float(alpha[0][inner].min()) == pytest.approx(1.0)
 
 
+def test_uv_seam_renders_like_duplicated_seam_vertices(tmp_path):
+    """Face-corner uvs (a template with UV seams) render exactly like the same mesh with its
+    seam vertices duplicated and per-vertex uvs."""
+    from test_data import H, K, W, seam_template
+
+    from sft.data import write_sequence
+
+    seam, dupl, vmap = seam_template()
+    assert len(dupl.verts) > len(seam.verts)
+    renders = []
+    for name, t in (("seam", seam), ("dupl", dupl)):
+        seq = load_sequence(write_sequence(tmp_path / name, t, K, W, H, [np.zeros((H, W, 3))]))
+        terms = ImageTerms(seq, RasterSettings(sigma=0.05), dtype=torch.float64)
+        rgb, alpha = terms.render(torch.tensor(seq.template.verts)[None])
+        renders.append((rgb, alpha))
+    (r0, a0), (r1, a1) = renders
+    assert float(a0.max()) > 0.9 and float(r0.std()) > 0.05  # the sheet is in view, textured
+    torch.testing.assert_close(r0, r1, atol=1e-12, rtol=0)
+    torch.testing.assert_close(a0, a1, atol=1e-12, rtol=0)
+
+
 def test_prefilter_texture_density():
     tex = np.random.default_rng(0).random((512, 512, 3)).astype(np.float32)
     uvs = np.array([[0, 0], [1, 0], [0, 1]], float)
