@@ -86,6 +86,29 @@ def test_ply_template_with_colours(tmp_path):
     np.testing.assert_allclose(s.template.colors, cols / 255.0, atol=1e-6)
 
 
+def test_frames_in_other_png_layouts(seq_dir):
+    """Grey, RGBA and 16-bit frames read as RGB in [0, 1]; an RGBA mask uses the colour
+    channels, not the alpha (OpenCV reads grey + alpha PNGs as RGBA)."""
+    path = seq_dir[0]
+    rng = np.random.default_rng(3)
+    g8 = rng.integers(0, 256, (H, W), dtype=np.uint8)
+    alpha = np.full((H, W), 255, np.uint8)
+    bgr8 = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    rgb16 = rng.integers(0, 65536, (H, W, 3), dtype=np.uint16)
+    cases = [
+        (g8, np.repeat(g8[..., None], 3, 2) / 255.0),
+        (np.dstack([bgr8, alpha]), bgr8[..., ::-1] / 255.0),
+        (rgb16[..., ::-1], rgb16 / 65535.0),
+    ]
+    for img, want in cases:
+        cv2.imwrite(str(path / "frames" / "000001.png"), np.ascontiguousarray(img))
+        np.testing.assert_allclose(load_sequence(path).frame(1), want, atol=1e-6)
+    m = np.zeros((H, W), np.uint8)
+    m[5:10, 4:20] = 255
+    cv2.imwrite(str(path / "masks" / "000001.png"), np.dstack([m, m, m, alpha]))
+    np.testing.assert_array_equal(load_sequence(path).mask(1), (m > 0).astype(np.float32))
+
+
 def test_writer_refuses_non_empty_folder(seq_dir):
     path, t, *_ = seq_dir
     with pytest.raises(FileExistsError, match="not empty"):
