@@ -82,7 +82,8 @@ def test_uv_seam_renders_like_duplicated_seam_vertices(tmp_path):
     assert len(dupl.verts) > len(seam.verts)
     renders = []
     for name, t in (("seam", seam), ("dupl", dupl)):
-        seq = load_sequence(write_sequence(tmp_path / name, t, K, W, H, [np.zeros((H, W, 3))]))
+        seq = load_sequence(write_sequence(tmp_path / name, t, K, W, H, [np.zeros((H, W, 3))],
+                                           [np.ones((H, W), bool)]))
         terms = ImageTerms(seq, RasterSettings(sigma=0.05), dtype=torch.float64)
         rgb, alpha = terms.render(torch.tensor(seq.template.verts)[None])
         renders.append((rgb, alpha))
