@@ -530,9 +530,8 @@ def _model_info(model: DeformationModel) -> dict:
     if not isinstance(model, JetModel):
         return {"name": model.name}
     t = model.template
-    tilt = t.max_tilt
     return {"name": model.name, "patches": t.n_patches, "order": t.order,
-            "max_tilt_deg": None if tilt != tilt else round(tilt, 2),
+            "max_tilt_deg": None if np.isnan(t.max_tilt) else round(t.max_tilt, 2),
             "fit_rms": t.fit_rms}
 
 
