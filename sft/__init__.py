@@ -2,8 +2,9 @@
 
 A textured template (camera coordinates, the shape of the first frame) is deformed so that its
 soft renders (:mod:`polygeo.render`) match every frame of a monocular video (thesis section 5.3).
-The template is a PolyFit :class:`polygeo.patches.PatchSet` (one patch by default); each frame
-has jet-coefficient offsets, per-point ``uv`` displacements and a rigid motion, optimised with
+The template is a PolyFit :class:`polygeo.patches.PatchSet` (by default the fewest patches that
+are height graphs: one for a sheet, several for a tube or a cap); each frame has
+jet-coefficient offsets, per-point ``uv`` displacements and a rigid motion, optimised with
 Adam over an adaptive sliding window of frames. A per-vertex baseline (classical energy-based
 SfT) shares the losses and the optimiser.
 
@@ -28,5 +29,6 @@ Departures from the thesis (documented where they are set): parameters live in n
 units (the patch radius is 1), which is what the thesis' learning rates are applied to;
 ``k_mi`` defaults to 10 rather than 0.1 and ``lr_rigid`` to 1e-3 rather than 1e-4 for these
 units (see :class:`sft.optimize.SfTSettings`); the soft coverage is remapped before
-the silhouette and colour terms (see :meth:`sft.losses.ImageTerms.render`).
+the silhouette and colour terms (see :meth:`sft.losses.ImageTerms.render`); the number of
+patches is chosen from the template (``patches="auto"``) rather than fixed at one.
 """
