@@ -93,9 +93,9 @@ class SfTSettings:
         2.92; 4: 0.067, 8: 0.098, 16: 0.153; 3 patches, one folded over: 1.56). With
         several, each patch has its own rigid motion (``patch_rigid``) and the boundary term
         ties them. On the sheets (one patch under "auto") 4 patches lowered the ratio from
-        0.210 to 0.056 (bend), 0.117 to 0.071 (cloth), 0.154 to 0.096 (fold) and 0.262 to
-        0.235 (roll, which rolls 209 degrees after the template: the choice is made on the
-        template), at about 10 % more time per frame, but raised it from 0.114 to 0.519 on
+        0.147 to 0.057 (bend), 0.122 to 0.069 (cloth), 0.154 to 0.090 (fold) and 0.260 to
+        0.231 (roll, which rolls 208 degrees after the template: the choice is made on the
+        template), at 10-50 % more time per frame, but raised it from 0.122 to 0.504 on
         the travelling S-wave (the patches drift in depth while their renders still match
         the frames), hence one patch wherever one is a height graph.
     max_tilt : float
