@@ -69,6 +69,22 @@ PATCHES_AUTO = "auto"
 MAX_TILT = 70.0
 
 
+def _check_patches(patches, max_tilt: float) -> tuple[int | str, float]:
+    """Validate a patch count (an integer >= 1 or ``"auto"``) and ``max_tilt`` (degrees).
+
+    Returns them (the count as int); raises ``ValueError``/``TypeError`` naming the argument.
+    """
+    if isinstance(patches, str):
+        if patches != PATCHES_AUTO:
+            raise ValueError(f"patches: expected an integer >= 1 or 'auto', got {patches!r}")
+    else:
+        patches = check_int(patches, "patches", low=1)
+    max_tilt = check_positive(max_tilt, "max_tilt")
+    if max_tilt >= 90.0:
+        raise ValueError(f"max_tilt: expected degrees in (0, 90), got {max_tilt}")
+    return patches, max_tilt
+
+
 def _global_frame(verts: torch.Tensor) -> Orientation:
     """PCA frame of all vertices, scaled so that their ``uv`` projections fit the unit disc."""
     fr = pca_frames(verts[None])
@@ -206,8 +222,7 @@ class JetTemplate:
                 f"coefficients of an order-{order} jet; use a lower order"
             )
         f = np.asarray(faces)
-        if isinstance(patches, str) and patches != PATCHES_AUTO:
-            raise ValueError(f"patches: expected an integer >= 1 or 'auto', got {patches!r}")
+        patches, max_tilt = _check_patches(patches, max_tilt)
 
         def fit_k(k: int):
             ps = PatchSet.fit(v, f, n_patches=k, order=order, orient="pca", seed=seed)
@@ -215,9 +230,6 @@ class JetTemplate:
             return ps, float("nan") if tilt is None else float(tilt.max())
 
         if patches == PATCHES_AUTO:
-            max_tilt = check_positive(max_tilt, "max_tilt")
-            if max_tilt >= 90.0:
-                raise ValueError(f"max_tilt: expected degrees in (0, 90), got {max_tilt}")
             cap = min(check_int(max_patches, "max_patches", low=1),
                       max(1, v.shape[0] // (2 * m)))
             k = 1
@@ -235,8 +247,7 @@ class JetTemplate:
                     f"{max_tilt:g}); the template is rough or folded at the scale of its "
                     "patches", RuntimeWarning, stacklevel=2)
         else:
-            k = check_int(patches, "patches", low=1, high=max(1, v.shape[0]))
-            ps, tilt = fit_k(k)
+            ps, tilt = fit_k(check_int(patches, "patches", high=max(1, v.shape[0])))
         return replace(cls.from_patchset(ps, v), max_tilt=tilt)
 
     @classmethod

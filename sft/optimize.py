@@ -45,7 +45,15 @@ from polygeo.render import RasterSettings
 from .data import Sequence, load_sequence
 from .losses import ImageTerms, Inextensibility, temporal_consistency
 from .metrics import frame_errors, summarize
-from .model import MAX_TILT, ORDER_AUTO, PATCHES_AUTO, DeformationModel, JetModel, build_model
+from .model import (
+    MAX_TILT,
+    ORDER_AUTO,
+    PATCHES_AUTO,
+    DeformationModel,
+    JetModel,
+    _check_patches,
+    build_model,
+)
 
 __all__ = ["SfTSettings", "SfTResult", "run_sft", "reconstruct_window", "CHECKPOINT_NAME"]
 
@@ -234,13 +242,7 @@ class SfTSettings:
         if self.order != ORDER_AUTO:
             self.order = check_int(self.order, "order", low=1, high=6)
         self.max_order = check_int(self.max_order, "max_order", low=2, high=6)
-        if isinstance(self.patches, str) and self.patches != PATCHES_AUTO:
-            raise ValueError(f"patches: expected an integer >= 1 or 'auto', got {self.patches!r}")
-        if self.patches != PATCHES_AUTO:
-            self.patches = check_int(self.patches, "patches", low=1)
-        self.max_tilt = check_positive(self.max_tilt, "max_tilt")
-        if self.max_tilt >= 90.0:
-            raise ValueError(f"max_tilt: expected degrees in (0, 90), got {self.max_tilt}")
+        self.patches, self.max_tilt = _check_patches(self.patches, self.max_tilt)
         self.window = check_int(self.window, "window", low=1)
         self.patience = check_int(self.patience, "patience", low=1)
         self.frame_period = check_int(self.frame_period, "frame_period", low=1)
