@@ -161,18 +161,54 @@ def run_config(seq: Path, settings: dict, frames: int) -> dict:
     }
 
 
+def visibility(seq: Path, frames: int) -> np.ndarray:
+    """``(frames, V)`` bool: the ground-truth vertices the camera sees in each frame.
+
+    A vertex is visible when the first hit of the ray from the camera centre towards it is
+    the vertex itself (trimesh ray casting on the ground-truth mesh, 0.1 mm tolerance). The
+    result depends on the sequence only, so it is computed once and kept in
+    ``<seq>/../visibility/<name>_<frames>.npy`` (written atomically: workers share it;
+    recomputed when the ground truth is newer).
+    """
+    import os
+
+    cache = seq.parent / "visibility" / f"{seq.name}_{frames}.npy"
+    newest_gt = max(p.stat().st_mtime for p in (seq / "gt").iterdir())
+    if cache.is_file() and cache.stat().st_mtime >= newest_gt:  # not older than the data
+        return np.load(cache)
+    import trimesh
+
+    from sft.data import load_sequence
+
+    sq = load_sequence(seq)
+    faces = np.asarray(sq.template.faces)
+    vis = []
+    for i in range(frames):
+        G = np.asarray(sq.gt(i), dtype=np.float64)
+        d = np.linalg.norm(G, axis=1)
+        mesh = trimesh.Trimesh(G, faces, process=False)
+        loc, ray, _ = mesh.ray.intersects_location(np.zeros_like(G), G / d[:, None],
+                                                    multiple_hits=False)
+        first = np.full(len(G), np.inf)
+        first[ray] = np.linalg.norm(loc, axis=1)
+        vis.append(first > d - 1e-4)
+    out = np.stack(vis)
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    tmp = cache.with_suffix(f".{os.getpid()}.npy")
+    np.save(tmp, out)
+    os.replace(tmp, cache)
+    return out
+
+
 def visible_errors(seq: Path, meshes: Path, frames: int) -> dict:
     """e_3D, its ratio to the fixed template's and e_n on the vertices the camera sees.
 
-    A vertex is visible when the first hit of the ray from the camera centre towards it is
-    the vertex itself (trimesh ray casting on the ground-truth mesh, 0.1 mm tolerance).
-    Parts that roll behind the sheet are observed only through the silhouette, so this
-    separates what the images determine from what the priors have to guess. Per-frame
-    values of :func:`sft.metrics.e_3d` / :func:`sft.metrics.e_n` on the vertex subsets,
-    averaged over frames like the main figures.
+    Visibility as in :func:`visibility`. Parts that roll behind the sheet are observed only
+    through the silhouette, so this separates what the images determine from what the
+    priors have to guess. Per-frame values of :func:`sft.metrics.e_3d` /
+    :func:`sft.metrics.e_n` on the vertex subsets, averaged over frames like the main
+    figures.
     """
-    import trimesh
-
     from polygeo.io import read_mesh
     from sft.data import load_sequence
     from sft.metrics import e_3d, e_n
@@ -180,17 +216,12 @@ def visible_errors(seq: Path, meshes: Path, frames: int) -> dict:
     sq = load_sequence(seq)
     faces = np.asarray(sq.template.faces)
     tmpl = np.asarray(sq.template.verts, dtype=np.float64)
+    vis = visibility(seq, frames)
     e_vis, e_tmpl, hidden, ang_vis, ang_hid = [], [], [], [], []
     for i in range(frames):
         G = np.asarray(sq.gt(i), dtype=np.float64)
         X = np.asarray(read_mesh(meshes / f"{i:06d}.ply").points, dtype=np.float64)
-        d = np.linalg.norm(G, axis=1)
-        mesh = trimesh.Trimesh(G, faces, process=False)
-        loc, ray, _ = mesh.ray.intersects_location(np.zeros_like(G), G / d[:, None],
-                                                    multiple_hits=False)
-        first = np.full(len(G), np.inf)
-        first[ray] = np.linalg.norm(loc, axis=1)
-        v = first > d - 1e-4
+        v = vis[i]
         hidden.append(float(1.0 - v.mean()))
         e_vis.append(float(e_3d(X[v], G[v])))
         e_tmpl.append(float(e_3d(tmpl[v], G[v])))
