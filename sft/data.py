@@ -4,9 +4,13 @@ A sequence is a folder::
 
     template.obj (+ template.mtl + texture image)   or   template.ply (with vertex colours)
     camera.json            {"K": [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], "width": W, "height": H}
-    frames/000000.png ...  RGB frames (8 or 16 bit)
-    masks/000000.png ...   optional; foreground = non-zero
+    frames/000000.png ...  RGB frames (8 or 16 bit PNG, or JPEG)
+    masks/000000.png ...   optional; foreground = non-zero (PNG: lossless)
     gt/000000.ply ...      optional; ground-truth vertices in the template's vertex order
+
+File names are frame indices ``0 .. N - 1`` with any zero-padding (``000000.png``, ``0000.png``
+and ``0.png`` alike); hidden files (``.DS_Store``) are ignored. ``K`` may also be written as
+one flat row-major list of 9 numbers.
 
 Conventions
 -----------
@@ -32,6 +36,7 @@ import os
 import re
 import shutil
 import tempfile
+import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,8 +57,11 @@ __all__ = [
     "read_vertices",
 ]
 
-_FRAME_RE = re.compile(r"^(\d{6})\.png$")
-_GT_RE = re.compile(r"^(\d{6})\.ply$")
+# file names are a frame index with any zero-padding (000000.png, 0000.png and 0.png alike);
+# frames may also be JPEG, masks stay lossless (a JPEG mask has no clean "non-zero")
+_FRAME_RE = re.compile(r"^(\d+)\.(?:png|jpe?g)$", re.IGNORECASE)
+_MASK_RE = re.compile(r"^(\d+)\.png$", re.IGNORECASE)
+_GT_RE = re.compile(r"^(\d+)\.ply$", re.IGNORECASE)
 
 
 # --------------------------------------------------------------------------------------------
@@ -325,7 +333,8 @@ def load_camera(path: str | os.PathLike) -> tuple[np.ndarray, int, int]:
     Parameters
     ----------
     path : str or path-like
-        The JSON file: ``{"K": 3x3 list, "width": int, "height": int}``.
+        The JSON file: ``{"K": 3x3 list, "width": int, "height": int}`` (``K`` may also be
+        a flat row-major list of 9 numbers).
 
     Returns
     -------
@@ -341,6 +350,11 @@ def load_camera(path: str | os.PathLike) -> tuple[np.ndarray, int, int]:
     ValueError
         If the JSON is malformed, a key is missing, or ``K`` is not an invertible upper
         triangular intrinsic matrix with positive focal lengths.
+
+    Warns
+    -----
+    RuntimeWarning
+        For keys other than ``K``, ``width``, ``height`` (lens distortion, say): ignored.
     """
     p = Path(path)
     if not p.is_file():
@@ -358,7 +372,13 @@ def load_camera(path: str | os.PathLike) -> tuple[np.ndarray, int, int]:
         K = np.asarray(data["K"], dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{p}: K is not a numeric 3x3 matrix ({exc})") from exc
+    if K.shape == (9,):  # written row-major as one flat list
+        K = K.reshape(3, 3)
     _check_camera(K, data["width"], data["height"], str(p))
+    extra = sorted(set(data) - {"K", "width", "height"})
+    if extra:
+        warnings.warn(f"{p}: key(s) {extra} ignored: the format is an ideal pinhole (no lens "
+                      "distortion; undistort the frames first)", RuntimeWarning, stacklevel=2)
     return K, int(data["width"]), int(data["height"])
 
 
@@ -367,19 +387,50 @@ def load_camera(path: str | os.PathLike) -> tuple[np.ndarray, int, int]:
 # --------------------------------------------------------------------------------------------
 
 
+def _check_in_view(verts: np.ndarray, K: np.ndarray, width: int, height: int,
+                   where: str) -> None:
+    """Refuse a template that is not in front of the camera or not in its image."""
+    z = verts[:, 2]
+    behind = int((z <= 0).sum())
+    if behind:
+        raise ValueError(
+            f"{where}: {behind} of {len(z)} vertices lie at or behind the camera (z <= 0); "
+            "the template must be in camera coordinates (OpenCV: z forward)")
+    uv = (verts @ K.T)[:, :2] / z[:, None]  # pixels
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] <= width) & (uv[:, 1] >= 0) & (uv[:, 1] <= height)
+    if not inside.any():
+        raise ValueError(
+            f"{where}: no vertex projects into the {width}x{height} image of camera.json "
+            f"(pixel range of the template: x {uv[:, 0].min():.0f} .. {uv[:, 0].max():.0f}, "
+            f"y {uv[:, 1].min():.0f} .. {uv[:, 1].max():.0f})")
+
+
 def _numbered(folder: Path, pattern: re.Pattern, what: str, ext: str) -> list[Path]:
-    files = sorted(folder.iterdir())
-    bad = [f.name for f in files if not pattern.match(f.name)]
+    """The files of ``folder`` named by a frame index, in index order.
+
+    Hidden files (``.DS_Store``, editor swap files) are ignored; any other file that does not
+    match ``pattern``, an index given twice (``1.png`` and ``000001.png``) or a gap in
+    ``0 .. N - 1`` is an error naming the folder.
+    """
+    files = [f for f in folder.iterdir() if not f.name.startswith(".")]
+    bad = sorted(f.name for f in files if not pattern.match(f.name))
     if bad:
         raise ValueError(
             f"{folder}: unexpected {what} file(s) {bad[:5]}; "
             f"expected names 000000.{ext}, 000001.{ext}, ..."
         )
-    idx = [int(pattern.match(f.name).group(1)) for f in files]
-    missing = sorted(set(range(len(idx))) - set(idx))
+    by_index: dict[int, Path] = {}
+    for f in files:
+        i = int(pattern.match(f.name).group(1))
+        if i in by_index:
+            a, b = sorted((by_index[i].name, f.name))
+            raise ValueError(f"{folder}: {what} {i} is given twice ({a} and {b})")
+        by_index[i] = f
+    missing = sorted(set(range(len(files))) - set(by_index))
     if missing:
-        raise ValueError(f"{folder}: missing {what} {missing[:5]} (expected 0 .. {len(idx) - 1})")
-    return files
+        raise ValueError(
+            f"{folder}: missing {what} {missing[:5]} (expected 0 .. {len(files) - 1})")
+    return [by_index[i] for i in range(len(files))]
 
 
 @dataclass(frozen=True)
@@ -483,6 +534,7 @@ def load_sequence(path: str | os.PathLike) -> Sequence:
         raise ValueError(f"{root}: both template.obj and template.ply exist; keep one")
     template = load_template(present[0])
     K, width, height = load_camera(root / "camera.json")
+    _check_in_view(template.verts, K, width, height, str(present[0]))
     fdir = root / "frames"
     if not fdir.is_dir():
         raise FileNotFoundError(f"{fdir}: frames folder does not exist")
@@ -498,7 +550,7 @@ def load_sequence(path: str | os.PathLike) -> Sequence:
     masks: list[Path] = []
     mdir = root / "masks"
     if mdir.is_dir():
-        masks = _numbered(mdir, _FRAME_RE, "mask", "png")
+        masks = _numbered(mdir, _MASK_RE, "mask", "png")
         if len(masks) != len(frames):
             raise ValueError(f"{mdir}: {len(masks)} masks for {len(frames)} frames")
         for m in masks:
@@ -514,9 +566,12 @@ def load_sequence(path: str | os.PathLike) -> Sequence:
         if len(gts) != len(frames):
             raise ValueError(f"{gdir}: {len(gts)} ground-truth meshes for {len(frames)} frames")
         for g in gts:  # read each once (one at a time: memory stays flat)
-            n = len(read_vertices(g))
-            if n != template.n_verts:
-                raise ValueError(f"{g}: {n} vertices, the template has {template.n_verts}")
+            gv = read_vertices(g)
+            if len(gv) != template.n_verts:
+                raise ValueError(f"{g}: {len(gv)} vertices, the template has {template.n_verts}")
+            if not np.isfinite(gv).all():
+                raise ValueError(f"{g}: {int((~np.isfinite(gv)).sum())} non-finite vertex "
+                                 "coordinates")
     return Sequence(
         root=root,
         template=template,

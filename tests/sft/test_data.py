@@ -109,6 +109,50 @@ def test_frames_in_other_png_layouts(seq_dir):
     np.testing.assert_array_equal(load_sequence(path).mask(1), (m > 0).astype(np.float32))
 
 
+def test_other_file_names_jpeg_frames_flat_K(seq_dir):
+    """Any zero-padding, JPEG frames, hidden files and a flat K load as the same sequence."""
+    path, t, frames, masks, gt = seq_dir
+    yy, xx = np.mgrid[0:H, 0:W]
+    smooth = np.stack([xx / W, yy / H, 0.5 + 0 * xx], -1)  # JPEG keeps a smooth image
+    cv2.imwrite(str(path / "frames" / "000002.png"), (255 * smooth[..., ::-1]).astype(np.uint8))
+    ref = load_sequence(path)
+    ref_frames = [ref.frame(i) for i in range(3)]
+    ref_masks = [ref.mask(i) for i in range(3)]
+    jpg = path / "frames" / "2.jpg"
+    cv2.imwrite(str(jpg), cv2.imread(str(path / "frames" / "000002.png")),
+                [cv2.IMWRITE_JPEG_QUALITY, 100])
+    (path / "frames" / "000002.png").unlink()
+    for sub in ("frames", "masks", "gt"):
+        for f in sorted((path / sub).iterdir()):
+            f.rename(f.with_name(f"{int(f.stem)}{f.suffix}"))
+    (path / "frames" / ".DS_Store").write_bytes(b"\0")
+    cam = json.loads((path / "camera.json").read_text())
+    cam["K"] = sum(cam["K"], [])
+    (path / "camera.json").write_text(json.dumps(cam))
+    s = load_sequence(path)
+    assert [f.name for f in s.frame_paths] == ["0.png", "1.png", "2.jpg"]
+    np.testing.assert_array_equal(s.K, ref.K)
+    for i in range(3):
+        np.testing.assert_array_equal(s.mask(i), ref_masks[i])
+    for i in range(2):
+        np.testing.assert_array_equal(s.frame(i), ref_frames[i])
+    # JPEG is lossy: close to the PNG frame, not equal
+    assert 0 < np.abs(s.frame(2) - ref_frames[2]).mean() < 0.02
+    # the same index twice is refused, naming both files
+    shutil.copy(path / "frames" / "1.png", path / "frames" / "0001.png")
+    with pytest.raises(ValueError, match=r"frame 1 is given twice \(0001.png and 1.png\)"):
+        load_sequence(path)
+
+
+def test_camera_extra_keys_warn(seq_dir):
+    path = seq_dir[0]
+    cam = json.loads((path / "camera.json").read_text())
+    cam["dist"] = [0.1, 0.0, 0.0, 0.0, 0.0]
+    (path / "camera.json").write_text(json.dumps(cam))
+    with pytest.warns(RuntimeWarning, match=r"key\(s\) \['dist'\] ignored"):
+        load_sequence(path)
+
+
 def test_writer_refuses_non_empty_folder(seq_dir):
     path, t, *_ = seq_dir
     with pytest.raises(FileExistsError, match="not empty"):
@@ -170,6 +214,24 @@ def _break(path, what):
         (path / "texture.png").unlink()
     elif what == "both_templates":
         shutil.copy(path / "template.obj", path / "template.ply")
+    elif what == "gt_nan":
+        from polygeo.io import write_ply
+
+        write_ply(path / "gt" / "000002.ply", np.full((12, 3), np.nan))
+    elif what in ("behind", "off_image"):
+        lines = (path / "template.obj").read_text().splitlines()
+        shift = np.array([0.0, 0.0, -0.5]) if what == "behind" else np.array([1.0, 0.0, 0.0])
+        out = []
+        for ln in lines:
+            if ln.startswith("v "):
+                p = np.array([float(x) for x in ln.split()[1:4]]) + shift
+                ln = "v " + " ".join(repr(float(x)) for x in p)
+            out.append(ln)
+        (path / "template.obj").write_text("\n".join(out) + "\n")
+    elif what == "jpeg_mask":
+        m = path / "masks" / "000001.png"
+        cv2.imwrite(str(m.with_suffix(".jpg")), cv2.imread(str(m)))
+        m.unlink()
     elif what == "obj_syntax":
         with open(path / "template.obj", "a") as fh:
             fh.write("v 1.0 abc 2.0\n")
@@ -195,6 +257,10 @@ def _break(path, what):
         ("texture_missing", ValueError, r"template.mtl: texture 'texture.png' \(map_Kd\)"),
         ("both_templates", ValueError, r"both template.obj and template.ply"),
         ("obj_syntax", ValueError, r"template.obj:\d+: cannot parse"),
+        ("gt_nan", ValueError, r"gt/000002.ply: 36 non-finite vertex coordinates"),
+        ("behind", ValueError, r"template.obj: 12 of 12 vertices lie at or behind the camera"),
+        ("off_image", ValueError, r"template.obj: no vertex projects into the 32x24 image"),
+        ("jpeg_mask", ValueError, r"masks: unexpected mask file\(s\) \['000001.jpg'\]"),
     ],
 )
 def test_validation_errors_name_the_file(seq_dir, what, exc, match):
