@@ -113,8 +113,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _print_summary(name: str, s: dict) -> None:
     if "e_3d" in s:
-        ratio = s["e_3d"] / s["e_3d_template"] if s["e_3d_template"] > 0 else float("nan")
-        print(f"  {name:<8} {s['e_3d']:.4f}   {s['e_3d_template']:.4f}   {ratio:6.3f}   "
+        # the template kept fixed is the ground truth (no deformation): no ratio to show
+        moved = s["e_3d_template"] > 1e-6
+        ratio = f"{s['e_3d'] / s['e_3d_template']:6.3f}" if moved else "     -"
+        print(f"  {name:<8} {s['e_3d']:.4f}   {s['e_3d_template']:.4f}   {ratio}   "
               f"{s['e_n']:6.2f}   {s['e_n_template']:6.2f}   {1000 * s['rmse']:6.2f}   "
               f"{s['iterations']:6.0f}   {s['seconds']:6.2f}")
     else:

@@ -193,6 +193,19 @@ def test_demo_target_verdicts():
     assert not _meets_targets({**s, "e_n": 5.01})
 
 
+def test_summary_table_has_no_ratio_without_motion(capsys):
+    """A sequence whose ground truth is the template (one frame) has no meaningful ratio."""
+    from sft.cli import _print_summary
+
+    s = {"e_3d": 0.0018, "e_3d_template": 2e-8, "e_n": 0.7, "e_n_template": 0.0,
+         "rmse": 7e-4, "iterations": 30, "seconds": 1.2}
+    _print_summary("polysft", s)
+    row = capsys.readouterr().out.split()
+    assert row[3] == "-" and row[1] == "0.0018"
+    _print_summary("polysft", {**s, "e_3d_template": 0.0072})
+    assert capsys.readouterr().out.split()[3] == "0.250"
+
+
 def test_frame_adam_matches_torch_adam():
     """Fresh per-frame Adam = torch.optim.Adam; carried state continues the same sequence."""
     from sft.optimize import _FrameAdam
