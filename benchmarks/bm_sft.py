@@ -95,6 +95,10 @@ def configs(quick: bool) -> list[tuple[str, str, dict, bool | tuple[str, ...]]]:
         ("polysft base", "polysft", dict(BASE_POLY), True),
         ("vertex base", "vertex", dict(BASE_VERT), True),
     ]
+    # the thesis' temporal term (eq. (48), frames start from the previous one) instead of the
+    # default constant-velocity prior (k_acc, frames start extrapolated)
+    out.append(("polysft eq. (48)", "polysft",
+                {**BASE_POLY, "k_tc": 0.05, "k_acc": 0.0, "init": "previous"}, True))
     # several patches, each with its own rigid motion tied by the boundary term (eq. (51))
     out.append(("polysft patches 4", "polysft", {**BASE_POLY, "patches": 4}, True))
     # the base chooses its patches ("auto": one for a sheet); the thesis' single patch on the

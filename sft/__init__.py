@@ -13,7 +13,8 @@ Modules
 ``sft.data``      sequence format, validated lazy loader, atomic writer
 ``sft.model``     :class:`~sft.model.JetTemplate`, :class:`~sft.model.JetModel` (PolySfT),
                   :class:`~sft.model.VertexModel` (baseline), :func:`~sft.model.build_model`
-``sft.losses``    colour + silhouette terms, inextensibility (eq. 47), temporal term (eq. 48)
+``sft.losses``    colour + silhouette terms, inextensibility (eq. 47), temporal terms (eq. 48,
+                  and a constant-velocity prior)
 ``sft.optimize``  :class:`~sft.optimize.SfTSettings`, :func:`~sft.optimize.run_sft`
                   (sliding window, checkpoints, resume), :func:`~sft.optimize.reconstruct_window`
 ``sft.metrics``   e_3D, e_n, RMSE

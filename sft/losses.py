@@ -11,6 +11,8 @@
   area).
 - Temporal consistency (thesis eq. (48)): ``k_tc / (W - 1) sum_t ||p_{t+1} - p_t||^2`` over
   consecutive frames of the window, for the parameters the model lists in ``temporal``.
+- Temporal acceleration (a constant-velocity prior, ours): ``k_acc / (W - 2) sum_t
+  ||p_{t+1} - 2 p_t + p_{t-1}||^2`` over the window, for every parameter of the model.
 
 When a sequence has no masks, the silhouette term is dropped and the colour loss compares
 whole frames; :class:`ImageTerms` warns about it once: no mask is derived from the images.
@@ -28,7 +30,8 @@ from polygeo.mesh import edge_lengths, edges
 from polygeo.render import Camera, RasterSettings, render, rgb_loss, silhouette_loss
 from polygeo.render.texture import flip_v
 
-__all__ = ["ImageTerms", "Inextensibility", "temporal_consistency", "prefilter_texture"]
+__all__ = ["ImageTerms", "Inextensibility", "temporal_consistency", "temporal_acceleration",
+           "prefilter_texture"]
 
 
 def prefilter_texture(texture: np.ndarray, uvs: np.ndarray, verts: np.ndarray,
@@ -237,6 +240,22 @@ class Inextensibility:
         return self.k_mi * (e - self.rest.to(e.dtype)).pow(2).sum(-1)
 
 
+def _differences(params: dict[str, torch.Tensor], names, order: int) -> torch.Tensor:
+    """``sum_names sum_t ||D^order p_t||^2 / (W - order)``: finite differences over frames."""
+    names = list(names)
+    first = params[names[0]]
+    W = first.shape[0]
+    total = first.new_zeros(())
+    if W <= order:
+        return total
+    for n in names:
+        d = params[n]
+        for _ in range(order):
+            d = d[1:] - d[:-1]
+        total = total + d.pow(2).sum()
+    return total / (W - order)
+
+
 def temporal_consistency(params: dict[str, torch.Tensor], names, k_tc: float) -> torch.Tensor:
     """Temporal consistency (thesis eq. (48)) over a window of stacked parameters.
 
@@ -254,13 +273,30 @@ def temporal_consistency(params: dict[str, torch.Tensor], names, k_tc: float) ->
     torch.Tensor
         Scalar ``k_tc / (W - 1) sum_t sum_names ||p_{t+1} - p_t||^2`` (0 when ``W < 2``).
     """
-    names = list(names)
-    first = params[names[0]]
-    W = first.shape[0]
-    if W < 2:
-        return first.new_zeros(())
-    total = first.new_zeros(())
-    for n in names:
-        d = params[n][1:] - params[n][:-1]
-        total = total + d.pow(2).sum()
-    return k_tc * total / (W - 1)
+    return k_tc * _differences(params, names, 1)
+
+
+def temporal_acceleration(params: dict[str, torch.Tensor], names, k_acc: float) -> torch.Tensor:
+    """Constant-velocity prior over a window: squared second differences of the parameters.
+
+    Eq. (48) pulls each frame towards the one before it, i.e. towards stopping; this term
+    only penalises changes of velocity, so that a part of the surface the images no longer
+    constrain (turned away, or hidden behind the rest) keeps moving as it did while it was
+    seen instead of freezing.
+
+    Parameters
+    ----------
+    params : dict of str to torch.Tensor
+        Stacked parameters, leading dimension ``W`` (frames of the window in order).
+    names : iterable of str
+        Parameters that enter the term (every parameter of the model by default).
+    k_acc : float
+        Weight.
+
+    Returns
+    -------
+    torch.Tensor
+        Scalar ``k_acc / (W - 2) sum_t sum_names ||p_{t+1} - 2 p_t + p_{t-1}||^2`` (0 when
+        ``W < 3``).
+    """
+    return k_acc * _differences(params, names, 2)

@@ -8,7 +8,13 @@ import torch
 
 from polygeo.render import RasterSettings
 from sft.data import load_sequence, write_sequence
-from sft.losses import ImageTerms, Inextensibility, prefilter_texture, temporal_consistency
+from sft.losses import (
+    ImageTerms,
+    Inextensibility,
+    prefilter_texture,
+    temporal_acceleration,
+    temporal_consistency,
+)
 
 
 def test_inextensibility_closed_forms():
@@ -40,6 +46,32 @@ def test_temporal_consistency_formula():
     same = {"a": torch.ones(3, 2)}
     assert float(temporal_consistency(same, ["a"], 1.0)) == 0.0
     assert float(temporal_consistency({"a": torch.ones(1, 2)}, ["a"], 1.0)) == 0.0
+
+
+def test_temporal_acceleration_zero_at_constant_velocity():
+    """Second differences: 0 on a straight, uniform trajectory whatever its speed; 2a on
+    p_t = a t^2 + b t + c; against an explicit sum on random parameters; 0 below 3 frames."""
+    t = torch.arange(4, dtype=torch.float64)[:, None, None]
+    g = torch.Generator().manual_seed(1)
+    v, c, a = torch.randn(3, 1, 5, 3, generator=g, dtype=torch.float64)
+    assert float(temporal_acceleration({"a": c + 7.0 * v * t}, ["a"], 1.0)) < 1e-24
+    quad = {"a": a * t**2 + v * t + c}
+    # two second differences, each 2a: k / (W - 2) * 2 * ||2a||^2
+    want = 0.3 / 2 * 2 * float((2 * a).pow(2).sum())
+    assert float(temporal_acceleration(quad, ["a"], 0.3)) == pytest.approx(want, rel=1e-12)
+    p = {"a": torch.randn(5, 4, 2, generator=g), "b": torch.randn(5, 3, generator=g)}
+    got = temporal_acceleration(p, ["a", "b"], 0.05)
+    want = 0.05 / 3 * sum(((p[n][k + 1] - 2 * p[n][k] + p[n][k - 1]) ** 2).sum()
+                          for n in "ab" for k in range(1, 4))
+    assert float(got) == pytest.approx(float(want), rel=1e-6)
+    assert float(temporal_acceleration({"a": torch.randn(2, 3, generator=g)}, ["a"], 1.0)) == 0
+
+
+def test_temporal_terms_gradcheck():
+    g = torch.Generator().manual_seed(2)
+    x = torch.randn(4, 3, 2, generator=g, dtype=torch.float64, requires_grad=True)
+    torch.autograd.gradcheck(lambda z: temporal_acceleration({"a": z}, ["a"], 0.7), (x,))
+    torch.autograd.gradcheck(lambda z: temporal_consistency({"a": z}, ["a"], 0.7), (x,))
 
 
 def test_image_terms_minimal_at_ground_truth(make_sequence):
