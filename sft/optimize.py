@@ -140,13 +140,12 @@ class SfTSettings:
     k_rgb, k_sil, k_mi, k_tc : float
         Weights of the colour, silhouette, inextensibility (eq. (47)) and temporal
         consistency (eq. (48)) terms. ``k_tc`` = 0 by default (the thesis: 0.05, see
-        ``k_acc``). ``k_mi`` = 10
-        instead of the thesis' 0.1: eq. (47) is evaluated with lengths in units of the
-        template radius and the image terms are means over pixels, and in these units 0.1
-        lets the sheet stretch to explain a depth drift. On our synthetic bend sequence
-        (12 frames, patience 30, period 150) the ratio of e_3D to the fixed template's
-        e_3D was 0.25 / 0.15 / 0.09 / 0.26 for k_mi = 0.1 / 1 / 10 / 100 (PolySfT), and
-        0.32 / - / 0.23 / 0.43 for the per-vertex baseline.
+        ``k_acc``). ``k_mi`` = 10 instead of the thesis' 0.1: eq. (47) is evaluated with
+        lengths in units of the template radius and the image terms are means over pixels,
+        and in these units 0.1 lets the sheet stretch to explain a depth drift. On our
+        synthetic bend sequence (12 frames, patience 30, period 150) the ratio of e_3D to
+        the fixed template's e_3D was 0.25 / 0.15 / 0.09 / 0.26 for k_mi = 0.1 / 1 / 10 /
+        100 (PolySfT), and 0.32 / - / 0.23 / 0.43 for the per-vertex baseline.
     k_acc : float
         Weight of the constant-velocity prior (:func:`sft.losses.temporal_acceleration`:
         squared second differences of every parameter over the window; needs ``window`` >=
