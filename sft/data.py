@@ -519,9 +519,10 @@ def load_sequence(path: str | os.PathLike) -> Sequence:
         If the folder, the template, ``camera.json`` or ``frames/`` is missing.
     ValueError
         For missing or extra frames, masks or ground truth, image sizes that differ from
-        ``camera.json``, a non-invertible ``K``, an empty or broken template, or a
-        ground-truth mesh whose vertex count differs from the template's. The message names
-        the offending file.
+        ``camera.json``, a non-invertible ``K``, an empty or broken template, a template
+        with a vertex at or behind the camera or none in the image, or a ground-truth mesh
+        whose vertex count differs from the template's or that holds NaN / inf. The
+        message names the offending file.
     """
     root = Path(path)
     if not root.is_dir():
