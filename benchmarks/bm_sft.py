@@ -97,8 +97,9 @@ def configs(quick: bool) -> list[tuple[str, str, dict, bool | tuple[str, ...]]]:
     ]
     # the thesis' temporal term (eq. (48), frames start from the previous one) instead of the
     # default constant-velocity prior (k_acc, frames start extrapolated)
-    out.append(("polysft eq. (48)", "polysft",
-                {**BASE_POLY, "k_tc": 0.05, "k_acc": 0.0, "init": "previous"}, True))
+    thesis_tc = {"k_tc": 0.05, "k_acc": 0.0, "init": "previous"}
+    out.append(("polysft eq. (48)", "polysft", {**BASE_POLY, **thesis_tc}, True))
+    out.append(("vertex eq. (48)", "vertex", {**BASE_VERT, **thesis_tc}, True))
     # several patches, each with its own rigid motion tied by the boundary term (eq. (51))
     out.append(("polysft patches 4", "polysft", {**BASE_POLY, "patches": 4}, True))
     # the base chooses its patches ("auto": one for a sheet); the thesis' single patch on the
@@ -129,6 +130,8 @@ def configs(quick: bool) -> list[tuple[str, str, dict, bool | tuple[str, ...]]]:
         # the Adam warm-up helps PolySfT and costs the baseline: its best without it
         out.append(("vertex window 1 warmup 0", "vertex",
                     {**BASE_VERT, "window": 1, "warmup": 0}, False))
+        out.append(("vertex window 1 warmup 0 eq. (48)", "vertex",
+                    {**BASE_VERT, "window": 1, "warmup": 0, **thesis_tc}, False))
     for o in (2, "auto") if quick else (2, 4, "auto"):
         out.append((f"polysft order {o}", "polysft", {**BASE_POLY, "order": o}, False))
     if not quick:  # the thesis' rigid learning rate (see sft.optimize.SfTSettings.lr_rigid)
