@@ -15,6 +15,7 @@ import numba as nb
 import numpy as np
 import torch
 
+from .jets import COLLINEAR_TOL
 from .status import Status
 
 __all__ = ["fit_numba", "fit_item", "fit_scratch", "accumulate_sample"]
@@ -319,6 +320,21 @@ def _residual2(uv, z, w, has_w, ok, b, K, ih, x, m):
     return sr, sw
 
 
+@nb.njit(cache=True, inline="always")
+def _collinear(mom):
+    """Whether the weighted parameter samples behind the moments ``mom`` are collinear."""
+    m0 = mom[0, 0]
+    if not m0 > 0.0:
+        return True
+    mu = mom[1, 0] / m0
+    mv = mom[0, 1] / m0
+    c20 = mom[2, 0] / m0 - mu * mu
+    c02 = mom[0, 2] / m0 - mv * mv
+    c11 = mom[1, 1] / m0 - mu * mv
+    tr = c20 + c02
+    return not (c20 * c02 - c11 * c11 > COLLINEAR_TOL * tr * tr)
+
+
 @nb.njit(cache=True)
 def fit_scratch(order, K):
     """Per-thread work arrays of :func:`fit_item` for jets of ``order`` and ``K`` samples."""
@@ -364,6 +380,7 @@ def fit_item(uv, z, w, has_w, mask, has_mask, b, h_given, order, fallback, max_c
         _moments1(uv, z, w, has_w, ok, b, K, ih, mom, rhs)
     else:
         _moments(uv, z, w, has_w, ok, b, K, ih, mom, rhs, pu, pv, n2, M, ep, eq)
+    flat = _collinear(mom)
     # solve, falling back to lower orders
     o = order
     st = _OK
@@ -380,7 +397,7 @@ def fit_item(uv, z, w, has_w, mask, has_mask, b, h_given, order, fallback, max_c
         cc = math.inf
         if cnt >= m:
             cc = _factor(mom, ep, eq, m, N, D, L, Ld, Linv)
-            success = cc <= max_cond
+            success = cc <= max_cond and not flat
         if o == order:
             creq = cc
         if success:

@@ -41,6 +41,12 @@ import torch
 from ._validate import as_tensor, check_choice, check_int, check_positive, check_shape
 from .status import Status
 
+#: Parameter samples whose covariance has ``det <= COLLINEAR_TOL * trace^2`` lie on a line
+#: (their spread across it is below 1e-5 of their spread along it): no plane, hence no jet of
+#: order >= 1, is defined, whatever the equilibration of the normal equations makes of the
+#: rounding noise across the line. Such items fall back to order 0 with status DEGENERATE.
+COLLINEAR_TOL = 1e-10
+
 __all__ = [
     "MAX_ORDER",
     "JetFit",
@@ -640,6 +646,21 @@ def _normal_system(su, z, w, order):
     return A, Aw, N, rhs
 
 
+def _collinear(su: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """Whether each item's weighted parameter samples lie on a line: ``(B,)`` bool.
+
+    See ``COLLINEAR_TOL``: no plane, hence no jet of order >= 1, is defined by them.
+    """
+    m0 = w.sum(-1)
+    safe = torch.where(m0 > 0, m0, torch.ones_like(m0))
+    mean = (w[..., None] * su).sum(1) / safe[:, None]  # (B, 2)
+    d = su - mean[:, None, :]
+    c = torch.einsum("bk,bki,bkj->bij", w, d, d) / safe[:, None, None]  # (B, 2, 2)
+    tr = c[:, 0, 0] + c[:, 1, 1]
+    det = c[:, 0, 0] * c[:, 1, 1] - c[:, 0, 1] * c[:, 1, 0]
+    return ~(det > COLLINEAR_TOL * tr * tr) | ~(m0 > 0)
+
+
 def _equilibrate(N):
     d = torch.diagonal(N, dim1=-2, dim2=-1)
     D = torch.where(d > 0, d.clamp_min(_TINY).rsqrt(), torch.ones_like(d))  # (B, M)
@@ -683,7 +704,7 @@ def _fit_torch_scaled(su, z, w, count, order, fallback, max_cond, refine, interp
         return coeffs, fitted, status, cond, rank
     A, Aw, N, rhs = _normal_system(su, z, w, order)
     D, Ne = _equilibrate(N)
-    enough = count >= M
+    enough = (count >= M) & ~_collinear(su.detach(), w.detach())
     ok = enough.clone()
     if bool(enough.all()):
         chol_ok, cond = _condition(Ne.detach())

@@ -259,6 +259,15 @@ def test_collinear_and_planar_neighbourhoods():
     line = np.c_[np.linspace(0, 1, 40), np.linspace(0, 2, 40), np.zeros(40)]
     res = differential_quantities(line, k=10)
     assert (res.status == Status.DEGENERATE).all()
+    # a line in general position, exact, with 1e-9 noise and rounded to float32 (as read
+    # from a PLY file): every point is flagged, on both backends
+    t = np.linspace(0, 1, 100)
+    slanted = np.stack([t, 2 * t, 3 * t], 1)
+    noisy = slanted + 1e-9 * np.random.default_rng(0).standard_normal(slanted.shape)
+    for pts in (slanted, noisy, slanted.astype(np.float32).astype(np.float64)):
+        for backend in ("torch", "numba"):
+            st = differential_quantities(pts, k=20, backend=backend).status
+            assert (st == Status.DEGENERATE).all(), (backend, np.bincount(st))
     assert np.isfinite(res.normals).all()
     np.testing.assert_allclose(res.k1, 0.0)
     np.testing.assert_allclose(np.linalg.norm(res.normals, axis=1), 1.0)

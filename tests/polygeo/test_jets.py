@@ -301,6 +301,27 @@ def test_auto_backend_is_differentiable(gen):
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
+def test_nearly_collinear_samples_are_degenerate(backend):
+    """Samples on a line up to rounding noise define no plane: equilibrating the normal
+    equations makes the noise across the line look like a well-spread direction, so the
+    collinearity is tested on the samples' covariance (COLLINEAR_TOL), the same on both
+    backends. A thin but real strip (1e-3 of its length) is still fitted."""
+    g = torch.Generator().manual_seed(3)
+    t = torch.linspace(-1, 1, 30, dtype=torch.float64)
+    line = torch.stack([t, 0.5 * t], -1)
+    across = torch.randn(30, generator=g, dtype=torch.float64)[:, None] * torch.tensor(
+        [-0.5, 1.0], dtype=torch.float64) / math.sqrt(1.25)
+    uv = torch.stack([line, line + 1e-9 * across, line.float().double() + 1e-7 * across,
+                      line + 1e-3 * across])
+    z = 0.2 * uv[..., 0] + 0.1 * torch.randn(4, 30, generator=g, dtype=torch.float64)
+    f = jets.fit(uv, z, 2, backend=backend)
+    assert f.status.tolist() == [Status.DEGENERATE] * 3 + [Status.OK]
+    assert f.fitted_order.tolist() == [0, 0, 0, 2]
+    assert torch.isfinite(f.coeffs).all()
+
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
 def test_fallback_statuses(gen, backend):
     K = 16
     t = torch.linspace(0, 2 * math.pi, K + 1, dtype=torch.float64)[:-1]
