@@ -97,15 +97,16 @@ class SfTSettings:
         is not already bent past about 140 degrees; several for a tube, a cap or a crumpled
         cloth, which are no height graph over one plane. On the 8-frame ``curl`` sequence (a
         270-degree tube; period 200) one patch folds over its plane and diverges (ratio of
-        e_3D to the fixed template's 2.49, e_n 21.1 degrees) while "auto" picks 2 (0.098,
-        2.92; 4: 0.067, 8: 0.098, 16: 0.153; 3 patches, one folded over: 1.56). With
-        several, each patch has its own rigid motion (``patch_rigid``) and the boundary term
-        ties them. On the sheets (one patch under "auto") 4 patches lowered the ratio from
-        0.147 to 0.057 (bend), 0.122 to 0.069 (cloth), 0.154 to 0.090 (fold) and 0.260 to
-        0.231 (roll, which rolls 208 degrees after the template: the choice is made on the
-        template), at 10-50 % more time per frame, but raised it from 0.122 to 0.504 on
-        the travelling S-wave (the patches drift in depth while their renders still match
-        the frames), hence one patch wherever one is a height graph.
+        e_3D to the fixed template's 2.76, e_n 22.0 degrees) while "auto" picks 2 (0.100,
+        2.94; 4 patches: 0.062; with eq. (48) instead of ``k_acc``, 8: 0.098, 16: 0.153, and 3
+        patches, one folded over: 1.56). With several, each patch has its own rigid motion
+        (``patch_rigid``) and the boundary term ties them. On the sheets (one patch under
+        "auto") 4 patches lowered the ratio from 0.120 to 0.072 (bend), 0.106 to 0.071
+        (cloth), 0.148 to 0.073 (fold) and 0.135 to 0.094 (roll, which rolls 208 degrees
+        after the template: the choice is made on the template), at 8-42 % more time per
+        frame, but raised it from 0.137 to 0.582 on the travelling S-wave (the patches drift
+        in depth while their renders still match the frames), hence one patch wherever one
+        is a height graph.
     max_tilt : float
         Degrees in ``(0, 90)`` for ``patches="auto"`` (default 70: one patch tracks sheets
         whose graph tilts to about 80 degrees during the ``bend`` sequence, so 70 at the
@@ -154,13 +155,13 @@ class SfTSettings:
         images stop constraining then freezes while the real one moves on. On the 8-frame
         ``roll`` sequence (its curl turns out of sight behind the flat part; up to 32 % of
         the vertices hidden) the ratio of e_3D to the fixed template's went from 0.260 to
-        0.140 and e_n from 10.4 to 5.8 degrees (hidden vertices 39 to 22 degrees; 4 patches:
-        0.072 and 4.3 degrees), and the other sequences stayed within their targets: bend
-        0.147 / 2.19 -> 0.142 / 2.42, swave 0.122 / 4.01 -> 0.140 / 4.88, fold 0.154 / 4.73
-        -> 0.149 / 4.22, cloth 0.122 / 2.64 -> 0.110 / 2.53, curl 0.098 / 2.92 -> 0.085 /
-        2.99 (``k_tc=0.05, k_acc=0, init="previous"`` restores the thesis). Heavier
-        weights cost the S-wave (k_acc 0.5: 0.29), whose shape oscillates from frame to
-        frame.
+        0.135 and e_n from 10.4 to 5.8 degrees (hidden vertices 38.7 to 21.7 degrees; 4
+        patches: 0.094 and 5.1 degrees), and the other sequences stayed within their
+        targets: bend 0.147 / 2.19 -> 0.120 / 2.34, swave 0.122 / 4.01 -> 0.137 / 4.82,
+        fold 0.154 / 4.73 -> 0.148 / 4.28, cloth 0.122 / 2.64 -> 0.106 / 2.51, curl 0.098 /
+        2.92 -> 0.100 / 2.94 (``benchmarks/bm_sft.py``; ``k_tc=0.05, k_acc=0,
+        init="previous"`` restores the thesis). Heavier weights cost the S-wave (k_acc 0.5:
+        0.29), whose shape oscillates from frame to frame.
     k_b, k_bn : float
         Boundary consistency (eq. (51), several patches): positions and normals.
     patch_rigid : bool
