@@ -125,6 +125,9 @@ def configs(quick: bool) -> list[tuple[str, str, dict, bool | tuple[str, ...]]]:
         for p in (70, 100):
             out.append((f"polysft window 1 period {p}", "polysft",
                         {**BASE_POLY, "window": 1, "frame_period": p}, False))
+            # a window of one has no acceleration term: its start is the only difference
+            out.append((f"polysft window 1 period {p} eq. (48)", "polysft",
+                        {**BASE_POLY, "window": 1, "frame_period": p, **thesis_tc}, False))
         out.append(("vertex window 1 period 100", "vertex",
                     {**BASE_VERT, "window": 1, "frame_period": 100}, False))
         # the Adam warm-up helps PolySfT and costs the baseline: its best without it
