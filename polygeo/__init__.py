@@ -35,6 +35,12 @@ if "NUMBA_THREADING_LAYER" not in os.environ:
     if "numba" in sys.modules:  # numba already imported: its config was read, set it directly
         sys.modules["numba"].config.THREADING_LAYER = "workqueue"
 
+# numba's disk cache does not notice a change in a kernel inlined from another module, nor an
+# upgrade that leaves old cache files behind: drop it when the kernels' sources changed.
+from ._numba_cache import drop_stale as _drop_stale  # noqa: E402
+
+_drop_stale(os.path.dirname(__file__))
+
 _SUBMODULES = (
     "jets",
     "frames",
