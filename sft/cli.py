@@ -50,6 +50,12 @@ def _add_settings_args(p: argparse.ArgumentParser) -> None:
         "carry_adam": "true/false: keep Adam moments across windows",
         "keep_best": "true/false: a window returns its lowest-loss iterate, not its last",
         "warmup": "Adam steps over which a fresh state's learning rates ramp up from 0",
+        "k_tc": "weight of eq. (48), the pull of each frame towards the previous one "
+                "(default 0; the thesis: 0.05 with --k-acc 0 --init previous)",
+        "k_acc": "weight of the constant-velocity prior (squared second differences of the "
+                 "parameters over the window; default 0.05)",
+        "init": "'extrapolate' (default: constant velocity from the two previous frames) or "
+                "'previous' (the thesis)",
     }
     for f in fields(SfTSettings):
         flag = "--" + f.name.replace("_", "-")
