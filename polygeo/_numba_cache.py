@@ -26,9 +26,13 @@ STAMP_NAME = "numba-sources.sha1"
 _MARKERS = (b"njit", b"numba")
 
 
-def _kernel_sources(root: Path) -> list[Path]:
-    """The ``.py`` files under ``root`` that mention numba, in a stable order."""
-    out = []
+def sources_hash(root: Path) -> str:
+    """SHA-1 of the kernel sources under ``root``.
+
+    Relative paths and contents of the ``.py`` files that mention numba; each file is read
+    once.
+    """
+    h = hashlib.sha1()
     for p in sorted(root.rglob("*.py")):
         if "__pycache__" in p.parts:
             continue
@@ -37,18 +41,10 @@ def _kernel_sources(root: Path) -> list[Path]:
         except OSError:
             continue
         if any(m in text for m in _MARKERS):
-            out.append(p)
-    return out
-
-
-def sources_hash(root: Path) -> str:
-    """SHA-1 over the relative paths and contents of the kernel sources under ``root``."""
-    h = hashlib.sha1()
-    for p in _kernel_sources(root):
-        h.update(p.relative_to(root).as_posix().encode())
-        h.update(b"\0")
-        h.update(p.read_bytes())
-        h.update(b"\0")
+            h.update(p.relative_to(root).as_posix().encode())
+            h.update(b"\0")
+            h.update(text)
+            h.update(b"\0")
     return h.hexdigest()
 
 
