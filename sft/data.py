@@ -396,7 +396,10 @@ def _check_in_view(verts: np.ndarray, K: np.ndarray, width: int, height: int,
         raise ValueError(
             f"{where}: {behind} of {len(z)} vertices lie at or behind the camera (z <= 0); "
             "the template must be in camera coordinates (OpenCV: z forward)")
-    uv = (verts @ K.T)[:, :2] / z[:, None]  # pixels
+    from polygeo.render.camera import Camera
+
+    cam = Camera(K=K, R=np.eye(3), t=np.zeros(3), width=width, height=height)
+    uv = cam.project(np.asarray(verts, dtype=np.float64))[0]  # pixels
     inside = (uv[:, 0] >= 0) & (uv[:, 0] <= width) & (uv[:, 1] >= 0) & (uv[:, 1] <= height)
     if not inside.any():
         raise ValueError(
