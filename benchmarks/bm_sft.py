@@ -102,6 +102,8 @@ def configs(quick: bool) -> list[tuple[str, str, dict, bool | tuple[str, ...]]]:
     out.append(("vertex eq. (48)", "vertex", {**BASE_VERT, **thesis_tc}, True))
     # several patches, each with its own rigid motion tied by the boundary term (eq. (51))
     out.append(("polysft patches 4", "polysft", {**BASE_POLY, "patches": 4}, True))
+    # the patches chosen on the template kept to the end (no re-partition when one gets steep)
+    out.append(("polysft no refit", "polysft", {**BASE_POLY, "refit_tilt": 0.0}, True))
     # the base chooses its patches ("auto": one for a sheet); the thesis' single patch on the
     # template that is no sheet
     out.append(("polysft patches 1", "polysft", {**BASE_POLY, "patches": 1}, ("curl",)))
@@ -167,6 +169,7 @@ def run_config(seq: Path, settings: dict, frames: int) -> dict:
         "per_frame_e_3d": [r["e_3d"] for r in rows],
         "orders": [r["order"] for r in rows],
         "patches": model.get("patches"),
+        "refits": [[r["frame"], r["refit_patches"]] for r in rows if "refit_patches" in r],
         **vis,
     }
 
@@ -421,7 +424,8 @@ def main(argv: list[str] | None = None) -> int:
     # per-sequence targets of the base PolySfT configuration
     vert_rows = {r["kind"]: r for r in results if r["config"] == "vertex base"}
     base_rows = [r for r in results
-                 if r["config"] in ("polysft base", "polysft patches 4", "polysft patches 1")
+                 if r["config"] in ("polysft base", "polysft patches 4", "polysft patches 1",
+                                    "polysft no refit")
                  and r["kind"] in vert_rows]
     targets = {
         "per_sequence": [

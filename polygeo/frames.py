@@ -31,6 +31,8 @@ __all__ = [
     "quaternion_apply",
     "random_rotation",
     "axis_angle_to_matrix",
+    "matrix_to_axis_angle",
+    "rigid_align",
     "Orientation",
 ]
 
@@ -467,6 +469,98 @@ def axis_angle_to_matrix(axis_angle) -> torch.Tensor:
     Kx = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(r.shape[:-1] + (3, 3))
     eye = torch.eye(3, dtype=r.dtype, device=r.device).expand_as(Kx)
     return eye + a[..., None, None] * Kx + b[..., None, None] * (Kx @ Kx)
+
+
+def matrix_to_axis_angle(R) -> torch.Tensor:
+    """Rotation vectors (axis times angle in radians, angle in ``[0, pi]``) of rotations.
+
+    The inverse of :func:`axis_angle_to_matrix` for angles below ``pi`` (at ``pi`` exactly the
+    axis' sign is that of :func:`matrix_to_quaternion`'s canonical quaternion).
+
+    Parameters
+    ----------
+    R : array_like or torch.Tensor
+        ``(..., 3, 3)`` rotation matrices.
+
+    Returns
+    -------
+    torch.Tensor
+        ``(..., 3)``; the identity gives the zero vector.
+
+    Raises
+    ------
+    ValueError
+        If the trailing shape is not ``(3, 3)``.
+    """
+    q = matrix_to_quaternion(R)  # w >= 0: the angle 2 atan2(|xyz|, w) is in [0, pi]
+    w, xyz = q[..., :1], q[..., 1:]
+    n2 = (xyz * xyz).sum(-1, keepdim=True)
+    small = n2 < 1e-12
+    n = torch.where(small, torch.ones_like(n2), n2).sqrt()
+    # angle / |xyz|; near the identity 2 atan2(n, w) / n = (2 / w)(1 - n^2 / (3 w^2) + ...)
+    factor = torch.where(small, 2.0 / w * (1.0 - n2 / (3.0 * w * w)),
+                         2.0 * torch.atan2(n, w) / n)
+    return xyz * factor
+
+
+def rigid_align(source, target, weights=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rotation and translation that best map ``source`` onto ``target`` (Kabsch).
+
+    Minimises ``sum_i w_i |R source_i + t - target_i|^2`` over rotations ``R`` (no
+    reflection) and translations ``t``, from the SVD of the weighted cross-covariance.
+
+    Parameters
+    ----------
+    source, target : array_like or torch.Tensor
+        ``(..., N, 3)`` corresponding points (same shape, ``N >= 1``).
+    weights : array_like or torch.Tensor, optional
+        ``(..., N)`` non-negative weights (default: all 1); each batch item needs a positive
+        total.
+
+    Returns
+    -------
+    R : torch.Tensor
+        ``(..., 3, 3)`` rotations.
+    t : torch.Tensor
+        ``(..., 3)`` translations.
+
+    Raises
+    ------
+    ValueError
+        On mismatched shapes, negative weights or a zero total weight.
+
+    Notes
+    -----
+    Degenerate-but-answerable configurations (fewer than three points, collinear points)
+    return one of the optimal rotations; the residual is still minimal.
+    """
+    p = as_tensor(source, "source")
+    q = as_tensor(target, "target", dtype=p.dtype)
+    check_shape(p, "source", ("...", "N", 3))
+    if q.shape != p.shape:
+        raise ValueError(f"target: expected the shape of source {tuple(p.shape)}, "
+                         f"got {tuple(q.shape)}")
+    if p.shape[-2] < 1:
+        raise ValueError("source: expected at least one point")
+    w = torch.ones(p.shape[:-1], dtype=p.dtype, device=p.device) if weights is None else \
+        as_tensor(weights, "weights", dtype=p.dtype)
+    if w.shape != p.shape[:-1]:
+        raise ValueError(f"weights: expected shape {tuple(p.shape[:-1])}, got {tuple(w.shape)}")
+    if bool((w < 0).any()):
+        raise ValueError("weights: expected non-negative weights")
+    tot = w.sum(-1, keepdim=True)
+    if bool((tot <= 0).any()):
+        raise ValueError("weights: every batch item needs a positive total weight")
+    wn = (w / tot)[..., None]
+    cp, cq = (wn * p).sum(-2), (wn * q).sum(-2)
+    H = ((p - cp[..., None, :]) * wn).transpose(-1, -2) @ (q - cq[..., None, :])  # (..., 3, 3)
+    U, _, Vh = torch.linalg.svd(H)
+    d = torch.sign(torch.linalg.det(Vh.transpose(-1, -2) @ U.transpose(-1, -2)))
+    d = torch.where(d == 0, torch.ones_like(d), d)
+    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1))
+    R = Vh.transpose(-1, -2) @ D @ U.transpose(-1, -2)
+    t = cq - (R @ cp[..., None])[..., 0]
+    return R, t
 
 
 # --------------------------------------------------------------------------------------------

@@ -45,6 +45,10 @@ def _add_settings_args(p: argparse.ArgumentParser) -> None:
         "patches": "jet patches, or 'auto' (default): the fewest (1, 2, 3, ...) whose every "
                    "triangle is within --max-tilt of its patch's axis (1 for a sheet)",
         "max_tilt": "degrees, < 90: steepest triangle a patch may hold with --patches auto",
+        "refit_tilt": "degrees: when a patch's jet gets steeper than this (and has steepened "
+                      "by more than --refit-tilt minus --refit-max-tilt since it was fitted), "
+                      "that frame's surface is re-partitioned into new patches; 0: never",
+        "refit_max_tilt": "degrees, < 90: steepest jet slope of a new patch after a refit",
         "patch_rigid": "true/false: a rigid motion per patch, tied by the boundary term",
         "freeze": "comma-separated parameters kept fixed, e.g. d_alpha,d_uv",
         "carry_adam": "true/false: keep Adam moments across windows",

@@ -44,8 +44,21 @@ import numpy as np
 import torch
 
 from polygeo import jets
-from polygeo._validate import as_tensor, check_finite, check_int, check_positive, check_shape
-from polygeo.frames import Orientation, axis_angle_to_matrix, pca_frames
+from polygeo._validate import (
+    as_tensor,
+    check_choice,
+    check_finite,
+    check_int,
+    check_positive,
+    check_shape,
+)
+from polygeo.frames import (
+    Orientation,
+    axis_angle_to_matrix,
+    matrix_to_axis_angle,
+    pca_frames,
+    rigid_align,
+)
 
 __all__ = [
     "JetTemplate",
@@ -55,6 +68,7 @@ __all__ = [
     "build_model",
     "ORDER_AUTO",
     "PATCHES_AUTO",
+    "jet_slopes",
 ]
 
 #: Value of ``order`` that lets the optimiser raise the jet order on plateaus.
@@ -83,6 +97,40 @@ def _check_patches(patches, max_tilt: float) -> tuple[int | str, float]:
     if max_tilt >= 90.0:
         raise ValueError(f"max_tilt: expected degrees in (0, 90), got {max_tilt}")
     return patches, max_tilt
+
+
+def jet_slopes(coeffs: torch.Tensor, sample_patch: torch.Tensor, uv: torch.Tensor,
+               order: int) -> np.ndarray:
+    """``(K,)`` steepest slope (degrees) of each patch's jet over its plane at its samples.
+
+    ``atan |grad z|`` of ``z(u, v) = sum_ij c_ij u^i v^j``, maximised over the samples of each
+    patch: a height graph folds over its plane at 90 degrees, so this is how much room a
+    patch has left to bend. Unlike the tilt of a mesh's triangles it does not see noise of
+    single triangles.
+
+    Parameters
+    ----------
+    coeffs : torch.Tensor
+        ``(K, M)`` jet coefficients (normalised local units) at ``order``.
+    sample_patch : torch.Tensor
+        ``(S,)`` int64 patch of each sample.
+    uv : torch.Tensor
+        ``(S, 2)`` sample parameters in their patch.
+    order : int
+        Jet order of ``coeffs``.
+
+    Returns
+    -------
+    np.ndarray
+        ``(K,)`` float64 degrees in ``[0, 90)``; 0 for a patch without samples.
+    """
+    with torch.no_grad():
+        c = coeffs[sample_patch]
+        zu = (jets.monomial_derivatives(uv, order, 1, 0) * c).sum(-1)
+        zv = (jets.monomial_derivatives(uv, order, 0, 1) * c).sum(-1)
+        ang = torch.rad2deg(torch.atan(torch.hypot(zu, zv))).to(torch.float64)
+        out = torch.zeros(coeffs.shape[0], dtype=torch.float64)
+        return out.scatter_reduce(0, sample_patch, ang, "amax").numpy()
 
 
 def _global_frame(verts: torch.Tensor) -> Orientation:
@@ -126,7 +174,8 @@ class JetTemplate:
     max_tilt : float
         Largest angle (degrees) between a template triangle and the axis of a patch it
         touches (:attr:`polygeo.patches.PatchMetrics.max_tilt`); above 90 a patch folds over
-        its plane. NaN when not computed.
+        its plane. With ``fit(..., tilt="jet")`` the steepest jet slope (:func:`jet_slopes`)
+        instead. NaN when not computed.
     """
 
     orientation: Orientation
@@ -169,6 +218,7 @@ class JetTemplate:
         *,
         max_tilt: float = MAX_TILT,
         max_patches: int = 64,
+        tilt: str = "mesh",
         seed: int = 0,
     ) -> JetTemplate:
         """Fit PolyFit patches (:class:`polygeo.patches.PatchSet`, PCA frames) to a template.
@@ -194,6 +244,11 @@ class JetTemplate:
             Largest count tried by ``"auto"`` (also capped so that every patch keeps at least
             twice as many vertices as jet coefficients). When even that count leaves a steeper
             triangle, it is used and a ``RuntimeWarning`` says so.
+        tilt : {"mesh", "jet"}
+            What ``"auto"`` bounds by ``max_tilt``: the triangles' angle to their patch's axis
+            (a patch's mesh stays a height graph), or the slope of each fitted jet
+            (:func:`jet_slopes`; for a reconstructed surface, whose single triangles can be
+            rough while the surface is smooth).
         seed : int
             Seed of the partition (``patches > 1``).
 
@@ -224,10 +279,16 @@ class JetTemplate:
         f = np.asarray(faces)
         patches, max_tilt = _check_patches(patches, max_tilt)
 
+        check_choice(tilt, "tilt", ("mesh", "jet"))
+        measure = tilt
+
         def fit_k(k: int):
             ps = PatchSet.fit(v, f, n_patches=k, order=order, orient="pca", seed=seed)
-            tilt = ps.metrics(boundary=False).max_tilt
-            return ps, float("nan") if tilt is None else float(tilt.max())
+            if measure == "jet":
+                t_ = cls.from_patchset(ps, v)
+                return ps, float(jet_slopes(t_.coeffs, t_.sample_patch, t_.uv, order).max())
+            tl = ps.metrics(boundary=False).max_tilt
+            return ps, float("nan") if tl is None else float(tl.max())
 
         if patches == PATCHES_AUTO:
             cap = min(check_int(max_patches, "max_patches", low=1),
@@ -243,7 +304,8 @@ class JetTemplate:
             if tilt > max_tilt:
                 warnings.warn(
                     f"patches='auto': {ps.n_patches} patches (the most tried) still leave a "
-                    f"triangle {tilt:.0f} degrees from its patch's axis (max_tilt "
+                    f"{'jet slope' if measure == 'jet' else 'triangle'} {tilt:.0f} degrees from "
+                    f"its patch's axis (max_tilt "
                     f"{max_tilt:g}); the template is rough or folded at the scale of its "
                     "patches", RuntimeWarning, stacklevel=2)
         else:
@@ -438,6 +500,12 @@ class JetModel(DeformationModel):
         self.patch_rigid = bool(patch_rigid) and t.n_patches > 1
         if self.patch_rigid:
             self.groups = {**JetModel.groups, "p_rot": "lr_patch", "p_trans": "lr_patch"}
+        #: ``(K,)`` steepest jet slope (degrees) of each patch of the template
+        self.template_slopes = jet_slopes(t.coeffs, t.sample_patch, t.uv, t.order)
+
+    def _batch_of_one(self, params: dict) -> dict[str, torch.Tensor]:
+        """One frame's parameters (extra entries, e.g. optimiser state, dropped) as a batch."""
+        return {k: params[k][None] for k in self.groups}
 
     @property
     def n_coeffs(self) -> int:
@@ -495,35 +563,45 @@ class JetModel(DeformationModel):
         uv = self._uv + params["d_uv"]  # (F, S, 2)
         coeff = self._coeffs + params["d_alpha"] * self._active()  # (F, K, M)
         A, b = self._patch_maps(params)
-        ys = []
-        for k, sl in enumerate(self._slices):
-            uvk = uv[:, sl]
-            ck = coeff[:, k, :, None]  # (F, M, 1)
-            z = (jets.monomials(uvk, self.max_order) @ ck)[..., 0] + self._resid[sl]
-            pts = torch.cat([uvk, z[..., None]], dim=-1)  # (F, S_k, 3) local
-            # A[..., k, :, :] is (3, 3) or (F, 3, 3), b[..., k, None, :] (1, 3) or (F, 1, 3)
-            ys.append(pts @ A[..., k, :, :].transpose(-1, -2) + b[..., k, None, :])
-        y = ys[0] if len(ys) == 1 else torch.cat(ys, dim=1)
+        mono = jets.monomials(uv, self.max_order)  # (F, S, M)
+        if len(self._slices) == 1:
+            z = (mono @ coeff[:, 0, :, None])[..., 0] + self._resid
+            pts = torch.cat([uv, z[..., None]], dim=-1)  # (F, S, 3) local
+            y = pts @ A[..., 0, :, :].transpose(-1, -2) + b[..., 0, None, :]
+        else:  # every sample through its patch's jet and map at once (no loop over patches)
+            sp = self.template.sample_patch
+            # every patch's jet at every sample (one matmul), then each sample's own
+            z_all = mono @ coeff.transpose(-1, -2)  # (F, S, K)
+            z = z_all.gather(-1, sp.expand(z_all.shape[:-1])[..., None])[..., 0] + self._resid
+            pts = torch.cat([uv, z[..., None]], dim=-1)
+            # (S, 3, 3) or (F, S, 3, 3) maps and (S, 3) or (F, S, 3) origins of the samples
+            As, bs = A.index_select(-3, sp), b.index_select(-2, sp)
+            y = (As @ pts[..., None])[..., 0] + bs
         return y, coeff, uv, A
 
     def _boundary(self, y: torch.Tensor, coeff: torch.Tensor, uv: torch.Tensor,
                   A: torch.Tensor) -> torch.Tensor:
         t = self.template
-        a, b = t.pairs[:, 0], t.pairs[:, 1]
-        d2 = (y[:, a] - y[:, b]).pow(2).sum(-1)  # (F, P), normalised units
-        normals = []
-        for idx in (a, b):  # jet normals at the pair samples only
-            kp = t.sample_patch[idx]
-            c = coeff[:, kp]  # (F, P, M)
-            q = uv[:, idx]
-            zu = (jets.monomial_derivatives(q, self.max_order, 1, 0) * c).sum(-1)
-            zv = (jets.monomial_derivatives(q, self.max_order, 0, 1) * c).sum(-1)
-            n = torch.stack([-zu, -zv, torch.ones_like(zu)], dim=-1)
-            n = n / n.norm(dim=-1, keepdim=True)
-            Ak = A[..., kp, :, :]  # (P, 3, 3) or (F, P, 3, 3) scaled rotations: normalise after
-            m = (Ak @ n[..., None])[..., 0]  # (F, P, 3)
-            normals.append(m / m.norm(dim=-1, keepdim=True))
-        cos = (normals[0] * normals[1]).sum(-1)
+        P = t.pairs.shape[0]
+        idx = t.pairs.T.reshape(-1)  # (2P,): the primaries, then the secondaries
+        ya, yb = y.index_select(1, idx).split(P, dim=1)
+        d2 = (ya - yb).pow(2).sum(-1)  # (F, P), normalised units
+        # jet normals at the pair samples: every patch's gradient there (one matmul per
+        # derivative), then each sample's own patch's
+        kp = t.sample_patch[idx]  # (2P,)
+        q = uv.index_select(1, idx)  # (F, 2P, 2)
+        ct = coeff.transpose(-1, -2)  # (F, M, K)
+        grads = []
+        for du, dv in ((1, 0), (0, 1)):
+            g = jets.monomial_derivatives(q, self.max_order, du, dv) @ ct  # (F, 2P, K)
+            grads.append(g.gather(-1, kp.expand(g.shape[:-1])[..., None])[..., 0])
+        n = torch.stack([-grads[0], -grads[1], torch.ones_like(grads[0])], dim=-1)
+        n = n / n.norm(dim=-1, keepdim=True)
+        Ak = A.index_select(-3, kp)  # (2P, 3, 3) or (F, 2P, 3, 3) scaled rotations
+        m = (Ak @ n[..., None])[..., 0]  # (F, 2P, 3)
+        m = m / m.norm(dim=-1, keepdim=True)
+        ma, mb = m.split(P, dim=1)
+        cos = (ma * mb).sum(-1)
         return (self.k_b * d2 + self.k_bn * (1.0 - cos).pow(2)).mean()
 
     def vertices(self, params: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -542,6 +620,83 @@ class JetModel(DeformationModel):
         if not self._identity:
             y = y.index_select(1, self.template.primary)
         return _rigid_local(y, self._frame, params["rot"], params["trans"]), reg
+
+
+    def tilt(self, params: dict[str, torch.Tensor]) -> np.ndarray:
+        """``(K,)`` steepest slope (degrees) of each patch's jet in one frame (:func:`jet_slopes`).
+
+        The jets with the frame's offsets (active order) at the displaced samples.
+        ``params`` are one frame's (entries that are not parameters are ignored).
+        """
+        p = self._batch_of_one(params)
+        coeff = (self._coeffs + p["d_alpha"] * self._active())[0]
+        return jet_slopes(coeff, self.template.sample_patch, (self._uv + p["d_uv"])[0],
+                          self.max_order)
+
+    def params_for(self, verts) -> dict[str, torch.Tensor]:
+        """Parameters of one frame whose surface is closest to ``verts`` (a projection).
+
+        In closed form: the global rigid motion is the best rigid map (Kabsch) of the template
+        onto ``verts``; with per-patch rigid motions each patch's is the best map of what is
+        left; ``Delta uv`` puts every sample under its target in its patch's plane and
+        ``Delta alpha`` is the least-squares jet (active order) through the targets' heights.
+        Exact, to rounding, for any surface that each patch sees as a height graph of its
+        order (the template itself gives zeros); otherwise the least-squares compromise.
+
+        Parameters
+        ----------
+        verts : array_like
+            ``(V, 3)`` vertices in camera coordinates (scene units), template vertex order.
+
+        Returns
+        -------
+        dict of str to torch.Tensor
+            Like :meth:`init_params`, in the model's dtype.
+
+        Raises
+        ------
+        ValueError
+            On a bad shape or non-finite vertices.
+        """
+        t = self.template
+        V = int(t.primary.shape[0])
+        X = as_tensor(verts, "verts", dtype=torch.float64).detach()
+        check_shape(X, "verts", (V, 3))
+        check_finite(X, "verts")
+        g, o = t.frame, t.orientation
+        sp = t.sample_patch
+        ys = g.inverse_apply(X[None])[0][t.sample_vertex]  # (S, 3) targets, normalised global
+        A = (o.s / g.s[0])[:, None, None] * (g.R[0].T @ o.R)  # (K, 3, 3)
+        b = (o.T - g.T[0]) @ g.R[0] / g.s[0]  # (K, 3)
+        deg = jets.exponents(self.max_order).sum(1)
+        active = deg <= self.order
+        z0 = (jets.monomials(t.uv, self.max_order) * t.coeffs[sp]).sum(-1) + t.residual
+        local0 = torch.cat([t.uv, z0[:, None]], -1)
+        y0 = (A[sp] @ local0[:, :, None])[:, :, 0] + b[sp]  # template samples
+        Rc, Tc = rigid_align(y0[t.primary], ys[t.primary])
+        yr = (ys - Tc) @ Rc  # R_c^T (y - T_c)
+        K = t.n_patches
+        p_rot = torch.zeros(K, 3, dtype=torch.float64)
+        p_trans = torch.zeros(K, 3, dtype=torch.float64)
+        d_uv = torch.zeros_like(t.uv)
+        d_alpha = torch.zeros_like(t.coeffs)
+        for k, sl in enumerate(t.slices):
+            Ak = A[k]
+            if self.patch_rigid:
+                Rk, tk = rigid_align(y0[sl] - b[k], yr[sl] - b[k])
+                p_rot[k], p_trans[k] = matrix_to_axis_angle(Rk), tk
+                Ak = Rk @ Ak
+            # A_k is a scaled rotation: its inverse is A_k^T / s^2
+            loc = (yr[sl] - b[k] - p_trans[k]) @ Ak / (Ak[:, 0] @ Ak[:, 0])
+            d_uv[sl] = loc[:, :2] - t.uv[sl]
+            mono = jets.monomials(loc[:, :2], self.max_order)
+            h = loc[:, 2] - t.residual[sl] - mono[:, ~active] @ t.coeffs[k, ~active]
+            sol = torch.linalg.lstsq(mono[:, active], h[:, None], driver="gelsd").solution
+            d_alpha[k, active] = sol[:, 0] - t.coeffs[k, active]
+        out = {"d_alpha": d_alpha, "d_uv": d_uv, "rot": matrix_to_axis_angle(Rc), "trans": Tc}
+        if self.patch_rigid:
+            out.update(p_rot=p_rot, p_trans=p_trans)
+        return {k: v.to(self.dtype) for k, v in out.items()}
 
 
 class VertexModel(DeformationModel):
@@ -596,6 +751,7 @@ def build_model(
     max_order: int = 6,
     patches: int | str = 1,
     max_tilt: float = MAX_TILT,
+    max_patches: int = 64,
     k_b: float = 1.0,
     k_bn: float = 0.1,
     patch_rigid: bool = True,
@@ -618,6 +774,8 @@ def build_model(
         Number of jet patches, or ``"auto"`` (see :meth:`JetTemplate.fit`).
     max_tilt : float
         Largest tilt (degrees) of a triangle from its patch's axis for ``"auto"``.
+    max_patches : int
+        Most patches ``"auto"`` may choose.
     k_b, k_bn : float
         Boundary-consistency weights (several patches).
     patch_rigid : bool
@@ -642,12 +800,14 @@ def build_model(
         raise ValueError(f"method: expected 'polysft' or 'vertex', got {method!r}")
     if order == ORDER_AUTO:
         top = check_int(max_order, "max_order", low=2, high=jets.MAX_ORDER)
-        tmpl = JetTemplate.fit(verts, faces, top, patches, max_tilt=max_tilt, seed=seed)
+        tmpl = JetTemplate.fit(verts, faces, top, patches, max_tilt=max_tilt,
+                               max_patches=max_patches, seed=seed)
         return JetModel(tmpl, order=2, k_b=k_b, k_bn=k_bn, patch_rigid=patch_rigid,
                         dtype=dtype)
     if isinstance(order, str):
         raise ValueError(f"order: expected an integer in [1, {jets.MAX_ORDER}] or 'auto', "
                          f"got {order!r}")
-    tmpl = JetTemplate.fit(verts, faces, order, patches, max_tilt=max_tilt, seed=seed)
+    tmpl = JetTemplate.fit(verts, faces, order, patches, max_tilt=max_tilt,
+                           max_patches=max_patches, seed=seed)
     return JetModel(tmpl, k_b=k_b, k_bn=k_bn, patch_rigid=patch_rigid, dtype=dtype)
 

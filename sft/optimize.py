@@ -4,9 +4,11 @@ Adaptive sliding window (thesis section 5.5.2): the frames ``s .. s + W - 1`` ar
 together until the loss has not improved on its running minimum for ``patience`` iterations or
 ``frame_period`` iterations have run; frame ``s`` is then final (its mesh is written at once),
 the window moves forward by one frame and the frame that enters it starts from the parameters of
-the frame before it. At the end of the sequence the window shrinks. Every frame is thus
-optimised in up to ``W`` windows; the wall time and the iterations of window ``s`` are charged
-to frame ``s``.
+the frame before it (extrapolated from the two before it by default). When a patch of the frame
+just finished has grown too steep to bend further, that frame's surface is re-partitioned into
+new patches (``SfTSettings.refit_tilt``). At the end of the sequence the window shrinks. Every
+frame is thus optimised in up to ``W`` windows; the wall time and the iterations of window ``s``
+are charged to frame ``s``.
 
 One Adam optimiser per window, with the learning rates of the thesis per parameter group
 (``Delta uv`` 1e-3, ``Delta alpha`` 1e-2; rigid 1e-3 instead of the thesis' 1e-4, see
@@ -16,13 +18,13 @@ Adam state ramps its learning rates up over its first ``warmup`` steps, and a wi
 its lowest-loss iterate (``keep_best``), not its last.
 
 Checkpoints are written after every ``checkpoint_every`` windows (atomically): the index of the
-next window, the parameters of the frames still in the window (with their Adam moments) and
-the model's state (active jet order). Windows are deterministic, so resuming from a checkpoint
-gives the same meshes as an uninterrupted run. Only the current window's frames are held in
-memory; meshes, per-frame records (``frames.jsonl``) and loss curves (``losses.jsonl``) are
-written as the run goes and read back once at the end for ``metrics.json``, so memory does not
-grow with the number of frames (before, the records were kept in memory and in the checkpoint:
-about 1.5 KB per frame).
+next window, the parameters of the frames still in the window (with their Adam moments), the
+model's state (active jet order) and the surface of the last re-partition. Windows are
+deterministic, so resuming from a checkpoint gives the same meshes as an uninterrupted run.
+Only the current window's frames are held in memory; meshes, per-frame records
+(``frames.jsonl``) and loss curves (``losses.jsonl``) are written as the run goes and read back
+once at the end for ``metrics.json``, so memory does not grow with the number of frames
+(before, the records were kept in memory and in the checkpoint: about 1.5 KB per frame).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ import hashlib
 import json
 import os
 import time
+import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -51,6 +54,7 @@ from .model import (
     PATCHES_AUTO,
     DeformationModel,
     JetModel,
+    JetTemplate,
     _check_patches,
     build_model,
 )
@@ -111,6 +115,25 @@ class SfTSettings:
         Degrees in ``(0, 90)`` for ``patches="auto"`` (default 70: one patch tracks sheets
         whose graph tilts to about 80 degrees during the ``bend`` sequence, so 70 at the
         template leaves room for the deformation).
+    refit_tilt : float
+        Degrees; 0 never re-partitions. After each frame, when a patch's jet is steeper than
+        this over its plane (:meth:`sft.model.JetModel.tilt`, the steepest ``atan |grad z|``
+        at its samples) and has steepened by more than ``refit_tilt - refit_max_tilt`` since
+        it was fitted, that frame's reconstruction becomes the template of a new model
+        (``patches="auto"`` on it, bounded by ``refit_max_tilt`` on the jets' slopes, at most
+        ``refit_max_patches``), and the frames still in the window and the two before are
+        projected onto the new model (:meth:`sft.model.JetModel.params_for`): the
+        extrapolated start and the constant-velocity prior carry the motion on. A height
+        graph over one plane cannot follow a sheet that rolls past a quarter turn: on the
+        8-frame ``roll`` the one patch's slope stalls at 70-75 degrees while the truth goes
+        to 90 and the curl beyond; re-partitioned, each patch turns with its own rigid
+        motion. Inextensibility keeps the first template's edge lengths.
+    refit_max_tilt : float
+        Degrees in ``(0, 90)``: the steepest jet slope a patch of a new partition may have.
+    refit_max_patches : int
+        Most patches of a new partition (its cost per iteration grows with the count: 4 ms
+        for one patch, 11 ms for 8 per 3-frame window of 2,700 vertices, against about
+        40 ms for the renders).
     window : int
         Sliding-window size ``W``.
     patience : int
@@ -223,6 +246,9 @@ class SfTSettings:
     auto_gain: float = 0.03
     patches: int | str = PATCHES_AUTO
     max_tilt: float = MAX_TILT
+    refit_tilt: float = 55.0
+    refit_max_tilt: float = 35.0
+    refit_max_patches: int = 8
     window: int = 3
     patience: int = 30
     frame_period: int = 200
@@ -261,7 +287,12 @@ class SfTSettings:
             self.order = check_int(self.order, "order", low=1, high=6)
         self.max_order = check_int(self.max_order, "max_order", low=2, high=6)
         self.patches, self.max_tilt = _check_patches(self.patches, self.max_tilt)
+        _, self.refit_max_tilt = _check_patches(1, self.refit_max_tilt)
+        self.refit_tilt = check_positive(self.refit_tilt, "refit_tilt", strict=False)
+        if self.refit_tilt >= 180.0:
+            raise ValueError(f"refit_tilt: expected degrees in [0, 180), got {self.refit_tilt}")
         self.window = check_int(self.window, "window", low=1)
+        self.refit_max_patches = check_int(self.refit_max_patches, "refit_max_patches", low=1)
         self.patience = check_int(self.patience, "patience", low=1)
         self.frame_period = check_int(self.frame_period, "frame_period", low=1)
         self.checkpoint_every = check_int(self.checkpoint_every, "checkpoint_every", low=0)
@@ -453,7 +484,7 @@ def run_sft(
     ckpt_path = out / CHECKPOINT_NAME
     sdict = asdict(settings)
 
-    start, pending, last, last2 = 0, {}, None, None
+    start, pending, last, last2, refit_ref = 0, {}, None, None, None
     if resume and ckpt_path.is_file():
         ck = torch.load(ckpt_path, weights_only=False)
         if (ck.get("version") != _CKPT_VERSION or ck.get("fingerprint") != fp
@@ -464,6 +495,9 @@ def run_sft(
             )
         start, pending = ck["next"], ck["pending"]
         last, last2 = ck["last"], ck["last2"]
+        refit_ref = ck.get("refit")
+        if refit_ref is not None:
+            model = _refit_model(model, settings, refit_ref, t.faces)
         model.load_state(ck["model_state"])
     # per-frame records and loss curves go to files as the run goes (memory stays flat);
     # on resume, lines of frames after the checkpoint are dropped
@@ -507,6 +541,14 @@ def run_sft(
             row.update(frame_errors(X, gt, template_v, t.faces).as_dict())
         if s in overlay_set:
             _overlay(out / f"overlay_{s:06d}.png", terms, X, targets[0], gt, t.faces)
+        if isinstance(model, JetModel):
+            slopes = model.tilt(pending[s])
+            row["slope"] = float(slopes.max())
+            if _needs_refit(model, settings, slopes):
+                model = _refit(model, settings, X, t.faces, pending, s, last)
+                last = pending.pop(-1)
+                refit_ref = X.clone()
+                row["refit_patches"] = model.template.n_patches
         last2, last = last, pending.pop(s)
         _trim_heap()  # inside the frame's timer: its cost is charged to the frame
         row["seconds"] = time.perf_counter() - t0
@@ -521,7 +563,7 @@ def run_sft(
                                           or s == T - 1):
             _atomic_save({"version": _CKPT_VERSION, "fingerprint": fp, "settings": sdict, "T": T,
                           "next": s + 1, "pending": pending, "last": last,
-                          "last2": last2,
+                          "last2": last2, "refit": refit_ref,
                           "model_state": model.state()}, ckpt_path)
         if bar is not None:
             bar.update(1)
@@ -561,6 +603,51 @@ def _build_model(st: SfTSettings, template) -> DeformationModel:
                        max_order=st.max_order, patches=st.patches, max_tilt=st.max_tilt,
                        k_b=st.k_b, k_bn=st.k_bn,
                        patch_rigid=st.patch_rigid, seed=st.seed, dtype=st.torch_dtype)
+
+
+def _needs_refit(model: JetModel, st: SfTSettings, slopes: np.ndarray) -> bool:
+    """Whether a patch has used up its room to bend (``SfTSettings.refit_tilt``).
+
+    ``slopes`` ``(K,)``: the steepest jet slope of each patch in the frame just finished.
+    A patch is full when it is steeper than ``refit_tilt`` and has steepened by more than
+    ``refit_tilt - refit_max_tilt`` since it was fitted.
+    """
+    if not st.refit_tilt > 0:
+        return False
+    room = max(st.refit_tilt - st.refit_max_tilt, 0.0)
+    limit = np.maximum(st.refit_tilt, model.template_slopes + room)
+    return bool((slopes > limit).any())
+
+
+def _refit_model(model: JetModel, st: SfTSettings, verts, faces) -> JetModel:
+    """A model of the same settings whose template is ``verts`` (``patches="auto"``)."""
+    with warnings.catch_warnings():  # a reconstruction may be rough: the cap is the answer
+        warnings.simplefilter("ignore", RuntimeWarning)
+        tmpl = JetTemplate.fit(verts, faces, model.max_order, PATCHES_AUTO,
+                               max_tilt=st.refit_max_tilt, max_patches=st.refit_max_patches,
+                               tilt="jet", seed=st.seed)
+    return JetModel(tmpl, order=model.order, k_b=st.k_b, k_bn=st.k_bn,
+                    patch_rigid=st.patch_rigid, dtype=st.torch_dtype)
+
+
+def _refit(model: JetModel, st: SfTSettings, X: torch.Tensor, faces, pending: dict, s: int,
+           last: dict | None) -> JetModel:
+    """Re-partition the surface of frame ``s`` (``X``) and re-express the window in it.
+
+    The new model's template is ``X`` itself (its own patches and frames, see
+    :func:`_refit_model`); the parameters of the window's frames (``pending``, changed in
+    place, Adam moments dropped) and of the frame before ``s`` (``last``, returned under key
+    ``-1``) are projected onto it (:meth:`sft.model.JetModel.params_for`), so that the
+    extrapolated start and the constant-velocity prior keep the motion going.
+    """
+    new = _refit_model(model, st, X, faces)
+    with torch.no_grad():
+        for j in list(pending):
+            Vj = X if j == s else model.vertices(model._batch_of_one(pending[j]))[0]
+            pending[j] = new.params_for(Vj.to(torch.float64))
+        pending[-1] = None if last is None else new.params_for(
+            model.vertices(model._batch_of_one(last))[0].to(torch.float64))
+    return new
 
 
 def _objective_parts(seq: Sequence, st: SfTSettings):

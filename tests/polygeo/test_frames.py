@@ -277,3 +277,68 @@ def test_pca_frames_validators():
         frames.pca_frames(torch.zeros(2, 5, 3), center=torch.zeros(3))
     with pytest.raises(ValueError, match="backend"):
         frames.pca_frames(torch.zeros(2, 5, 3), backend="gpu")
+
+
+# ---------------------------------------------------------------- axis-angle, rigid alignment
+
+
+def test_matrix_to_axis_angle_inverts_rodrigues(gen):
+    axis = torch.randn(300, 3, generator=gen, dtype=torch.float64)
+    axis = axis / axis.norm(dim=-1, keepdim=True)
+    # angles over (0, pi), with the small-angle branch and the identity
+    ang = torch.cat([torch.rand(296, generator=gen, dtype=torch.float64) * (math.pi - 1e-6),
+                     torch.tensor([1e-9, 1e-14, 0.0, math.pi - 1e-6], dtype=torch.float64)])
+    aa = axis * ang[:, None]
+    back = frames.matrix_to_axis_angle(frames.axis_angle_to_matrix(aa))
+    torch.testing.assert_close(back, aa, rtol=0, atol=1e-9)
+    # an angle above pi comes back as the same rotation the other way round
+    big = torch.tensor([[0.0, 0.0, 1.5 * math.pi]], dtype=torch.float64)
+    torch.testing.assert_close(frames.matrix_to_axis_angle(frames.axis_angle_to_matrix(big)),
+                               torch.tensor([[0.0, 0.0, -0.5 * math.pi]], dtype=torch.float64))
+    with pytest.raises(ValueError, match="R"):
+        frames.matrix_to_axis_angle(torch.eye(4))
+
+
+def test_rigid_align_recovers_a_rigid_motion(gen):
+    R = frames.random_rotation(6, gen, dtype=torch.float64)
+    t = torch.randn(6, 3, generator=gen, dtype=torch.float64)
+    p = torch.randn(6, 40, 3, generator=gen, dtype=torch.float64)
+    q = p @ R.transpose(-1, -2) + t[:, None]
+    R2, t2 = frames.rigid_align(p, q)
+    torch.testing.assert_close(R2, R, rtol=0, atol=1e-12)
+    torch.testing.assert_close(t2, t, rtol=0, atol=1e-12)
+    # with noise the residual is no larger than that of the true motion (it is the optimum),
+    # and a reflected target still gets a rotation
+    qn = q + 0.05 * torch.randn(q.shape, generator=gen, dtype=torch.float64)
+    R3, t3 = frames.rigid_align(p, qn)
+    res = ((p @ R3.transpose(-1, -2) + t3[:, None] - qn) ** 2).sum((-1, -2))
+    res_true = ((q - qn) ** 2).sum((-1, -2))
+    assert bool((res <= res_true + 1e-12).all())
+    R4, _ = frames.rigid_align(p[0], p[0] * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64))
+    assert _is_rotation(R4)
+    # weights: points of zero weight do not matter
+    w = torch.ones(40, dtype=torch.float64)
+    w[:10] = 0
+    bad = q[0].clone()
+    bad[:10] += 5.0
+    R5, t5 = frames.rigid_align(p[0], bad, w)
+    torch.testing.assert_close(R5, R[0], rtol=0, atol=1e-12)
+    # degenerate but answerable: one point (translation), collinear points (a rotation)
+    R6, t6 = frames.rigid_align(p[0, :1], q[0, :1])
+    torch.testing.assert_close(p[0, :1] @ R6.T + t6, q[0, :1], rtol=0, atol=1e-12)
+    line = torch.linspace(0, 1, 5, dtype=torch.float64)[:, None] * torch.tensor([1.0, 2, 3])
+    R7, t7 = frames.rigid_align(line, line @ R[0].T)
+    assert _is_rotation(R7)
+    torch.testing.assert_close(line @ R7.T + t7, line @ R[0].T, rtol=0, atol=1e-12)
+
+
+def test_rigid_align_validation():
+    p = torch.zeros(5, 3)
+    with pytest.raises(ValueError, match="target"):
+        frames.rigid_align(p, torch.zeros(4, 3))
+    with pytest.raises(ValueError, match="weights"):
+        frames.rigid_align(p, p, torch.zeros(5))
+    with pytest.raises(ValueError, match="weights"):
+        frames.rigid_align(p, p, -torch.ones(5))
+    with pytest.raises(ValueError, match="source"):
+        frames.rigid_align(torch.zeros(5, 2), torch.zeros(5, 2))

@@ -294,3 +294,61 @@ def test_auto_patches_warns_when_the_cap_leaves_steep_patches():
         JetTemplate.fit(v, f, 4, "auto", max_tilt=120.0)
     with pytest.raises(ValueError, match="max_patches: expected an integer in"):
         JetTemplate.fit(v, f, 4, "auto", max_patches=0)
+
+
+@pytest.mark.parametrize("patches", [1, 3])
+def test_params_for_projects_surfaces_onto_the_model(patches):
+    v, f = sheet(25, 19, bend=3.0)
+    m = build_model("polysft", v, f, order=4, patches=patches, dtype=torch.float64)
+    # the template itself: zero parameters
+    p0 = m.params_for(v)
+    for k, x in p0.items():
+        np.testing.assert_allclose(x.numpy(), 0.0, atol=1e-10, err_msg=k)
+    # a rigid motion of the template: recovered exactly (as the global rigid motion)
+    R = axis_angle_to_matrix(torch.tensor([0.3, -0.5, 0.2], dtype=torch.float64)).numpy()
+    moved = (v - v.mean(0)) @ R.T + v.mean(0) + np.array([0.01, -0.02, 0.05])
+    p = m.params_for(moved)
+    X = m.vertices(stack(p, 1))[0].numpy()
+    np.testing.assert_allclose(X, moved, atol=1e-10)
+    assert float(p["d_alpha"].abs().max()) < 1e-9 and float(p["d_uv"].abs().max()) < 1e-9
+    # another bend (not a polynomial of order 4): the projection is close, and no worse than
+    # what fitting the parameters to the vertices by gradient descent reaches
+    target = torch.as_tensor(sheet(25, 19, bend=7.0)[0] @ R.T)
+    p = m.params_for(target)
+    err = float((m.vertices(stack(p, 1))[0] - target).norm(dim=-1).max())
+    q = {k: x.clone().requires_grad_(True) for k, x in stack(m.init_params(), 1).items()}
+    opt = torch.optim.Adam(q.values(), lr=1e-2)
+    for _ in range(1500):
+        opt.zero_grad()
+        loss = (m.vertices(q)[0] - target).pow(2).sum(-1).mean() / m.scale**2
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        err_gd = float((m.vertices(q)[0] - target).norm(dim=-1).max())
+    assert err < 2e-4  # 0.2 mm on a 24 cm sheet
+    assert err <= 1.5 * err_gd + 1e-5
+    with pytest.raises(ValueError, match="verts"):
+        m.params_for(v[:-1])
+    with pytest.raises(ValueError, match="verts"):
+        m.params_for(np.full_like(v, np.nan))
+
+
+def test_tilt_is_the_steepest_jet_slope():
+    # a sheet bent into a cylinder arc of half-angle 0.12 m / 0.25 m = 27.5 degrees: the slope
+    # of a one-patch jet over the chord plane reaches the arc's half-angle at its ends
+    v, f = sheet(41, 15, bend=4.0)
+    m = JetModel(JetTemplate.fit(v, f, 6, 1), dtype=torch.float64)
+    p = m.init_params()
+    tilt = m.tilt(p)
+    assert tilt.shape == (1,)
+    assert tilt[0] == pytest.approx(np.degrees(0.12 * 4.0), abs=0.5)
+    # a rigid motion does not change it; offsets that steepen the jet do
+    p["rot"] = torch.tensor([0.4, 0.1, -0.3], dtype=torch.float64)
+    np.testing.assert_allclose(m.tilt(p), tilt, atol=1e-9)
+    # several patches: each its own, all below the single patch's
+    m4 = JetModel(JetTemplate.fit(v, f, 6, 4), dtype=torch.float64)
+    t4 = m4.tilt(m4.init_params())
+    assert t4.shape == (4,) and t4.max() < tilt[0] - 5
+    # the same surface after a further bend (projected): steeper
+    target = sheet(41, 15, bend=6.0)[0]
+    assert m.tilt(m.params_for(target))[0] == pytest.approx(np.degrees(0.12 * 6.0), abs=1.0)

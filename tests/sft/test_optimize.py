@@ -67,6 +67,40 @@ def test_resume_equals_uninterrupted(make_sequence, tmp_path):
         run_sft(seq, tmp_path / "cut", SfTSettings(patience=6, frame_period=12), progress=False)
 
 
+def test_refit_splits_a_rolling_sheet_and_resumes(make_sequence, tmp_path):
+    # a sheet rolling up: once its one patch is steep past refit_tilt the surface of that
+    # frame becomes the template of a new model with several patches; the meshes go on from
+    # where they were (no jump at the refit), and a run cut after the refit resumes to the
+    # same meshes
+    seq = load_sequence(make_sequence("roll", 6, size=64, grid=(18, 12)))
+    st = SfTSettings(patience=5, frame_period=15, overlays=0, refit_tilt=25.0,
+                     refit_max_tilt=15.0)
+    full = run_sft(seq, tmp_path / "full", st, progress=False, charts=False)
+    refits = [r for r in full.rows if "refit_patches" in r]
+    assert refits and all(r["refit_patches"] > 1 for r in refits)
+    first = refits[0]["frame"]
+    assert first < 5
+    meshes = [read_points(tmp_path / "full" / "meshes" / f"{i:06d}.ply").points
+              for i in range(6)]
+    # the frame after the refit starts from the extrapolated, re-expressed surface: it moves
+    # no more than the frames before it did
+    step = [np.linalg.norm(meshes[i + 1] - meshes[i], axis=1).max() for i in range(5)]
+    assert step[first] < 3 * max(step[:first] + [1e-3])
+    for r in full.rows[1:]:  # frame 0 is the template
+        assert r["e_3d"] < r["e_3d_template"]
+    part = run_sft(seq, tmp_path / "cut", st, progress=False, max_windows=first + 2,
+                   charts=False)
+    assert not part.complete
+    ck = torch.load(tmp_path / "cut" / CHECKPOINT_NAME, weights_only=False)
+    assert ck["refit"] is not None
+    resumed = run_sft(seq, tmp_path / "cut", st, progress=False, charts=False)
+    for i in range(6):
+        b = read_points(tmp_path / "cut" / "meshes" / f"{i:06d}.ply").points
+        np.testing.assert_array_equal(meshes[i], b)
+    assert [r.get("refit_patches") for r in resumed.rows] == \
+        [r.get("refit_patches") for r in full.rows]
+
+
 def test_records_stream_to_disk_and_resume_drops_unsaved_frames(make_sequence, tmp_path):
     # records go to frames.jsonl as the run goes (not into memory or the checkpoint); after
     # an interruption between checkpoints, resuming drops the records of the frames the
