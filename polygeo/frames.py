@@ -1,4 +1,4 @@
-"""Local frames: batched PCA frames, unit quaternions and similarity orientations (s, R, T).
+"""Local frames: batched PCA frames, unit quaternions, rotation vectors, similarity orientations (s, R, T) and rigid alignment.
 
 Conventions
 -----------

@@ -93,10 +93,15 @@ def _check_patches(patches, max_tilt: float) -> tuple[int | str, float]:
             raise ValueError(f"patches: expected an integer >= 1 or 'auto', got {patches!r}")
     else:
         patches = check_int(patches, "patches", low=1)
-    max_tilt = check_positive(max_tilt, "max_tilt")
-    if max_tilt >= 90.0:
-        raise ValueError(f"max_tilt: expected degrees in (0, 90), got {max_tilt}")
-    return patches, max_tilt
+    return patches, _check_tilt(max_tilt, "max_tilt")
+
+
+def _check_tilt(value, name: str) -> float:
+    """Validate an angle in degrees in ``(0, 90)``; raises ``ValueError`` naming ``name``."""
+    value = check_positive(value, name)
+    if value >= 90.0:
+        raise ValueError(f"{name}: expected degrees in (0, 90), got {value}")
+    return value
 
 
 def jet_slopes(coeffs: torch.Tensor, sample_patch: torch.Tensor, uv: torch.Tensor,
@@ -438,6 +443,20 @@ class DeformationModel:
         """Restore :meth:`state`."""
 
 
+def _per_sample_map(A: torch.Tensor, x: torch.Tensor, patch: torch.Tensor) -> torch.Tensor:
+    """``A[patch[i]] @ x[..., i, :]`` for every point ``i``, without a batch of 3 x 3 products.
+
+    ``A`` is ``(K, 3, 3)`` or ``(F, K, 3, 3)``, ``x`` ``(F, N, 3)``, ``patch`` ``(N,)``
+    int64; returns ``(F, N, 3)``. Every point goes through all ``K`` maps in one matrix
+    product and keeps its own: for the few patches of a model that is far cheaper (forward
+    and backward) than gathering a ``3 x 3`` matrix per point.
+    """
+    K = A.shape[-3]
+    At = A.transpose(-1, -2).transpose(-3, -2).reshape(*A.shape[:-3], 3, 3 * K)
+    allk = (x @ At).unflatten(-1, (K, 3))  # (F, N, K, 3)
+    return allk.gather(-2, patch.view(1, -1, 1, 1).expand(*allk.shape[:2], 1, 3))[..., 0, :]
+
+
 class JetModel(DeformationModel):
     """PolySfT: jet offsets, ``uv`` displacements and a rigid motion per frame.
 
@@ -574,9 +593,7 @@ class JetModel(DeformationModel):
             z_all = mono @ coeff.transpose(-1, -2)  # (F, S, K)
             z = z_all.gather(-1, sp.expand(z_all.shape[:-1])[..., None])[..., 0] + self._resid
             pts = torch.cat([uv, z[..., None]], dim=-1)
-            # (S, 3, 3) or (F, S, 3, 3) maps and (S, 3) or (F, S, 3) origins of the samples
-            As, bs = A.index_select(-3, sp), b.index_select(-2, sp)
-            y = (As @ pts[..., None])[..., 0] + bs
+            y = _per_sample_map(A, pts, sp) + b.index_select(-2, sp)
         return y, coeff, uv, A
 
     def _boundary(self, y: torch.Tensor, coeff: torch.Tensor, uv: torch.Tensor,
@@ -597,8 +614,7 @@ class JetModel(DeformationModel):
             grads.append(g.gather(-1, kp.expand(g.shape[:-1])[..., None])[..., 0])
         n = torch.stack([-grads[0], -grads[1], torch.ones_like(grads[0])], dim=-1)
         n = n / n.norm(dim=-1, keepdim=True)
-        Ak = A.index_select(-3, kp)  # (2P, 3, 3) or (F, 2P, 3, 3) scaled rotations
-        m = (Ak @ n[..., None])[..., 0]  # (F, 2P, 3)
+        m = _per_sample_map(A, n, kp)  # (F, 2P, 3): A_k are scaled rotations
         m = m / m.norm(dim=-1, keepdim=True)
         ma, mb = m.split(P, dim=1)
         cos = (ma * mb).sum(-1)

@@ -56,6 +56,7 @@ from .model import (
     JetModel,
     JetTemplate,
     _check_patches,
+    _check_tilt,
     build_model,
 )
 
@@ -287,7 +288,7 @@ class SfTSettings:
             self.order = check_int(self.order, "order", low=1, high=6)
         self.max_order = check_int(self.max_order, "max_order", low=2, high=6)
         self.patches, self.max_tilt = _check_patches(self.patches, self.max_tilt)
-        _, self.refit_max_tilt = _check_patches(1, self.refit_max_tilt)
+        self.refit_max_tilt = _check_tilt(self.refit_max_tilt, "refit_max_tilt")
         self.refit_tilt = check_positive(self.refit_tilt, "refit_tilt", strict=False)
         if self.refit_tilt >= 180.0:
             raise ValueError(f"refit_tilt: expected degrees in [0, 180), got {self.refit_tilt}")
@@ -331,8 +332,10 @@ class SfTResult:
         The output folder.
     rows : list of dict
         Per-frame records: ``frame``, ``iterations``, ``seconds`` (wall), ``cpu_seconds``,
-        ``loss``, ``order`` (active jet order), ``rss_mb`` and, with ground truth, the
-        fields of :class:`sft.metrics.FrameErrors`.
+        ``loss``, ``order`` (active jet order), ``rss_mb``, for PolySfT ``slope`` (the
+        steepest jet slope of the frame in degrees, :meth:`sft.model.JetModel.tilt`) and, on
+        a frame after which the surface was re-partitioned, ``refit_patches`` (the new
+        count), and with ground truth the fields of :class:`sft.metrics.FrameErrors`.
     summary : dict
         Means over frames (:func:`sft.metrics.summarize`).
     complete : bool
@@ -545,8 +548,7 @@ def run_sft(
             slopes = model.tilt(pending[s])
             row["slope"] = float(slopes.max())
             if _needs_refit(model, settings, slopes):
-                model = _refit(model, settings, X, t.faces, pending, s, last)
-                last = pending.pop(-1)
+                model, last = _refit(model, settings, X, t.faces, pending, s, last)
                 refit_ref = X.clone()
                 row["refit_patches"] = model.template.n_patches
         last2, last = last, pending.pop(s)
@@ -575,7 +577,7 @@ def run_sft(
     complete = len(rows) == T
     summary = summarize(rows)
     record = {"sequence": str(seq.root), "frames": T, "complete": complete,
-              "settings": sdict, "model": _model_info(model), "mean": summary,
+              "settings": sdict, "model": _model_info(model, rows), "mean": summary,
               "per_frame": rows}
     tmp = out / "metrics.json.part"
     tmp.write_text(json.dumps(record, indent=1) + "\n")
@@ -587,14 +589,19 @@ def run_sft(
     return SfTResult(out_dir=out, rows=rows, summary=summary, complete=complete)
 
 
-def _model_info(model: DeformationModel) -> dict:
-    """What ``metrics.json`` records of the model (patches chosen, their steepest tilt)."""
+def _model_info(model: DeformationModel, rows: list[dict]) -> dict:
+    """What ``metrics.json`` records of the model at the end of a run.
+
+    Its patches and their steepest tilt (triangles for the template's partition, jet slopes
+    after a re-partition), and ``refits``: ``[frame, patches]`` of every re-partition.
+    """
     if not isinstance(model, JetModel):
         return {"name": model.name}
     t = model.template
     return {"name": model.name, "patches": t.n_patches, "order": t.order,
             "max_tilt_deg": None if np.isnan(t.max_tilt) else round(t.max_tilt, 2),
-            "fit_rms": t.fit_rms}
+            "fit_rms": t.fit_rms,
+            "refits": [[r["frame"], r["refit_patches"]] for r in rows if "refit_patches" in r]}
 
 
 def _build_model(st: SfTSettings, template) -> DeformationModel:
@@ -631,23 +638,25 @@ def _refit_model(model: JetModel, st: SfTSettings, verts, faces) -> JetModel:
 
 
 def _refit(model: JetModel, st: SfTSettings, X: torch.Tensor, faces, pending: dict, s: int,
-           last: dict | None) -> JetModel:
+           last: dict | None) -> tuple[JetModel, dict | None]:
     """Re-partition the surface of frame ``s`` (``X``) and re-express the window in it.
 
     The new model's template is ``X`` itself (its own patches and frames, see
     :func:`_refit_model`); the parameters of the window's frames (``pending``, changed in
-    place, Adam moments dropped) and of the frame before ``s`` (``last``, returned under key
-    ``-1``) are projected onto it (:meth:`sft.model.JetModel.params_for`), so that the
-    extrapolated start and the constant-velocity prior keep the motion going.
+    place, Adam moments dropped) and of the frame before ``s`` (``last``) are projected onto
+    it (:meth:`sft.model.JetModel.params_for`), so that the extrapolated start and the
+    constant-velocity prior carry the motion on. Returns the new model and ``last``
+    projected.
     """
     new = _refit_model(model, st, X, faces)
+
+    def project(params: dict) -> dict:
+        return new.params_for(model.vertices(model._batch_of_one(params))[0].double())
+
     with torch.no_grad():
         for j in list(pending):
-            Vj = X if j == s else model.vertices(model._batch_of_one(pending[j]))[0]
-            pending[j] = new.params_for(Vj.to(torch.float64))
-        pending[-1] = None if last is None else new.params_for(
-            model.vertices(model._batch_of_one(last))[0].to(torch.float64))
-    return new
+            pending[j] = new.params_for(X) if j == s else project(pending[j])
+        return new, (None if last is None else project(last))
 
 
 def _objective_parts(seq: Sequence, st: SfTSettings):

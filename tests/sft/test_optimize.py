@@ -99,6 +99,9 @@ def test_refit_splits_a_rolling_sheet_and_resumes(make_sequence, tmp_path):
         np.testing.assert_array_equal(meshes[i], b)
     assert [r.get("refit_patches") for r in resumed.rows] == \
         [r.get("refit_patches") for r in full.rows]
+    model = json.loads((tmp_path / "cut" / "metrics.json").read_text())["model"]
+    assert model["refits"] == [[r["frame"], r["refit_patches"]] for r in refits]
+    assert model["patches"] == refits[-1]["refit_patches"]
 
 
 def test_records_stream_to_disk_and_resume_drops_unsaved_frames(make_sequence, tmp_path):
@@ -188,6 +191,14 @@ def test_settings_validation():
         SfTSettings(max_tilt=90.0)
     with pytest.raises(ValueError, match="max_tilt: expected a finite value > 0"):
         SfTSettings(max_tilt=0.0)
+    with pytest.raises(ValueError, match="refit_tilt: expected a finite value >= 0"):
+        SfTSettings(refit_tilt=-1.0)
+    with pytest.raises(ValueError, match="refit_tilt: expected degrees in \\[0, 180\\)"):
+        SfTSettings(refit_tilt=180.0)
+    with pytest.raises(ValueError, match="refit_max_tilt: expected degrees in \\(0, 90\\)"):
+        SfTSettings(refit_max_tilt=90.0)
+    with pytest.raises(ValueError, match="refit_max_patches: expected an integer in"):
+        SfTSettings(refit_max_patches=0)
     assert SfTSettings().patches == "auto" and SfTSettings(patches=3).patches == 3
     assert SfTSettings(order="auto").order == "auto"
     assert SfTSettings(dtype="float64").torch_dtype == torch.float64
