@@ -1,4 +1,4 @@
-"""Local frames: batched PCA frames, unit quaternions, rotation vectors, similarity orientations (s, R, T) and rigid alignment.
+"""Local frames: PCA frames, quaternions, rotation vectors, orientations (s, R, T), alignment.
 
 Conventions
 -----------
