@@ -128,13 +128,23 @@ class SfTSettings:
         graph over one plane cannot follow a sheet that rolls past a quarter turn: on the
         8-frame ``roll`` the one patch's slope stalls at 70-75 degrees while the truth goes
         to 90 and the curl beyond; re-partitioned, each patch turns with its own rigid
-        motion. Inextensibility keeps the first template's edge lengths.
+        motion. Inextensibility keeps the first template's edge lengths. On the 8-frame
+        synthetic sequences (``benchmarks/bm_sft.py`` and the same runs by hand) the ratio of
+        e_3D to the fixed template's and e_n went from 0.135 / 5.80 degrees to 0.085 / 4.45
+        on ``roll`` (re-partitioned after frames 2, 4 and 6: 2, then 8 patches; hidden
+        vertices 21.7 to 16.8 degrees), 0.120 / 2.34 to 0.088 / 2.03 on ``bend`` (5 patches
+        after frame 2) and 0.137 / 4.82 to 0.096 / 4.01 on ``swave`` (8 patches after frame
+        4, one again after frame 7); fold, cloth and curl never re-partition. A trigger at 55
+        degrees: roll 0.096 / 4.92, swave 0.106 / 4.00; at 45 (patches within 30) the S-wave
+        was re-partitioned after every frame (0.189 / 7.39); at most 4 patches: roll 0.111 /
+        5.32. Eight patches make an iteration about 25 % dearer (3-frame window, 2,700
+        vertices: 37 -> 46 ms).
     refit_max_tilt : float
         Degrees in ``(0, 90)``: the steepest jet slope a patch of a new partition may have.
     refit_max_patches : int
-        Most patches of a new partition (its cost per iteration grows with the count: 4 ms
-        for one patch, 11 ms for 8 per 3-frame window of 2,700 vertices, against about
-        40 ms for the renders).
+        Most patches of a new partition (the model's share of an iteration grows with the
+        count: 4 ms for one patch, 10 ms for 8, forward and backward of a 3-frame window of
+        2,700 vertices, against about 30 ms for the renders).
     window : int
         Sliding-window size ``W``.
     patience : int
@@ -247,7 +257,7 @@ class SfTSettings:
     auto_gain: float = 0.03
     patches: int | str = PATCHES_AUTO
     max_tilt: float = MAX_TILT
-    refit_tilt: float = 55.0
+    refit_tilt: float = 50.0
     refit_max_tilt: float = 35.0
     refit_max_patches: int = 8
     window: int = 3
