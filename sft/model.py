@@ -130,9 +130,8 @@ def jet_slopes(coeffs: torch.Tensor, sample_patch: torch.Tensor, uv: torch.Tenso
         ``(K,)`` float64 degrees in ``[0, 90)``; 0 for a patch without samples.
     """
     with torch.no_grad():
-        c = coeffs[sample_patch]
-        zu = (jets.monomial_derivatives(uv, order, 1, 0) * c).sum(-1)
-        zv = (jets.monomial_derivatives(uv, order, 0, 1) * c).sum(-1)
+        c, q = coeffs[sample_patch], uv[:, None, :]  # one jet per sample, at its point
+        zu, zv = (jets.evaluate(c, q, 1, 0)[:, 0], jets.evaluate(c, q, 0, 1)[:, 0])
         ang = torch.rad2deg(torch.atan(torch.hypot(zu, zv))).to(torch.float64)
         out = torch.zeros(coeffs.shape[0], dtype=torch.float64)
         return out.scatter_reduce(0, sample_patch, ang, "amax").numpy()
@@ -522,8 +521,11 @@ class JetModel(DeformationModel):
         #: ``(K,)`` steepest jet slope (degrees) of each patch of the template
         self.template_slopes = jet_slopes(t.coeffs, t.sample_patch, t.uv, t.order)
 
-    def _batch_of_one(self, params: dict) -> dict[str, torch.Tensor]:
-        """One frame's parameters (extra entries, e.g. optimiser state, dropped) as a batch."""
+    def batch_of_one(self, params: dict) -> dict[str, torch.Tensor]:
+        """One frame's parameters as a batch of one frame, as :meth:`vertices` takes them.
+
+        Entries that are not parameters (e.g. optimiser state) are dropped.
+        """
         return {k: params[k][None] for k in self.groups}
 
     @property
@@ -644,7 +646,7 @@ class JetModel(DeformationModel):
         The jets with the frame's offsets (active order) at the displaced samples.
         ``params`` are one frame's (entries that are not parameters are ignored).
         """
-        p = self._batch_of_one(params)
+        p = self.batch_of_one(params)
         coeff = (self._coeffs + p["d_alpha"] * self._active())[0]
         return jet_slopes(coeff, self.template.sample_patch, (self._uv + p["d_uv"])[0],
                           self.max_order)

@@ -661,7 +661,7 @@ def _refit(model: JetModel, st: SfTSettings, X: torch.Tensor, faces, pending: di
     new = _refit_model(model, st, X, faces)
 
     def project(params: dict) -> dict:
-        return new.params_for(model.vertices(model._batch_of_one(params))[0].double())
+        return new.params_for(model.vertices(model.batch_of_one(params))[0].double())
 
     with torch.no_grad():
         for j in list(pending):
