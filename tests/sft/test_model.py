@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+from polygeo import jets
 from polygeo.frames import axis_angle_to_matrix
 from sft.model import JetModel, JetTemplate, VertexModel, build_model
 
@@ -352,3 +353,37 @@ def test_tilt_is_the_steepest_jet_slope():
     # the same surface after a further bend (projected): steeper
     target = sheet(41, 15, bend=6.0)[0]
     assert m.tilt(m.params_for(target))[0] == pytest.approx(np.degrees(0.12 * 6.0), abs=1.0)
+
+
+def test_auto_patches_on_jet_slopes():
+    # "auto" bounded on the jets' slopes: every patch's jet within max_tilt (checked with an
+    # independent finite difference of the fitted height field), the count before fails;
+    # single rough triangles (noise on a few vertices) do not raise the count
+    v, f = sheet(41, 15, bend=1.5 * np.pi / 0.24)
+    t = JetTemplate.fit(v, f, 4, "auto", max_tilt=45.0, tilt="jet")
+    assert t.n_patches > 1 and t.max_tilt <= 45.0
+    m = JetModel(t, dtype=torch.float64)
+    assert m.tilt(m.init_params()).max() == pytest.approx(t.max_tilt, abs=1e-9)
+    h = 1e-6
+    for k, sl in enumerate(t.slices):
+        uv = t.uv[sl]
+        c = t.coeffs[k]
+
+        def z(q, c=c):
+            return (jets.monomials(q, t.order) * c).sum(-1)
+
+        gu = (z(uv + torch.tensor([h, 0.0], dtype=torch.float64))
+              - z(uv - torch.tensor([h, 0.0], dtype=torch.float64))) / (2 * h)
+        gv = (z(uv + torch.tensor([0.0, h], dtype=torch.float64))
+              - z(uv - torch.tensor([0.0, h], dtype=torch.float64))) / (2 * h)
+        assert np.degrees(np.arctan(float(torch.hypot(gu, gv).max()))) <= 45.0 + 1e-4
+    prev = t.n_patches - 1 if t.n_patches <= 8 else {12: 8, 18: 12, 27: 18}[t.n_patches]
+    assert JetTemplate.fit(v, f, 4, prev, tilt="jet").max_tilt > 45.0
+    flat, f2 = sheet(25, 19)
+    rough = flat.copy()
+    rough[[100, 250, 300], 2] += 0.015  # three 15 mm spikes: single triangles at ~56 degrees
+    assert JetTemplate.fit(rough, f2, 4, "auto", max_tilt=45.0, tilt="jet").n_patches == 1
+    with pytest.warns(RuntimeWarning, match="still leave a triangle"):
+        assert JetTemplate.fit(rough, f2, 4, "auto", max_tilt=45.0).n_patches > 1
+    with pytest.raises(ValueError, match="tilt: expected one of"):
+        JetTemplate.fit(v, f, 4, "auto", tilt="normals")
