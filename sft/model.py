@@ -283,38 +283,39 @@ class JetTemplate:
         f = np.asarray(faces)
         patches, max_tilt = _check_patches(patches, max_tilt)
 
-        check_choice(tilt, "tilt", ("mesh", "jet"))
-        measure = tilt
+        measure = check_choice(tilt, "tilt", ("mesh", "jet"))
 
-        def fit_k(k: int):
+        def fit_k(k: int) -> tuple[JetTemplate, float]:
+            """The template on ``k`` patches and its steepest tilt (``measure``)."""
             ps = PatchSet.fit(v, f, n_patches=k, order=order, orient="pca", seed=seed)
+            tmpl = cls.from_patchset(ps, v)
             if measure == "jet":
-                t_ = cls.from_patchset(ps, v)
-                return ps, float(jet_slopes(t_.coeffs, t_.sample_patch, t_.uv, order).max())
-            tl = ps.metrics(boundary=False).max_tilt
-            return ps, float("nan") if tl is None else float(tl.max())
+                steep = jet_slopes(tmpl.coeffs, tmpl.sample_patch, tmpl.uv, order).max()
+            else:
+                tl = ps.metrics(boundary=False).max_tilt
+                steep = float("nan") if tl is None else tl.max()
+            return tmpl, float(steep)
 
         if patches == PATCHES_AUTO:
             cap = min(check_int(max_patches, "max_patches", low=1),
                       max(1, v.shape[0] // (2 * m)))
             k = 1
             while True:
-                ps, tilt = fit_k(k)
-                if not tilt > max_tilt or k >= cap:
+                tmpl, steep = fit_k(k)
+                if not steep > max_tilt or k >= cap:
                     break
                 # the partition is area-driven, not curvature-driven: a count one higher can
                 # place its cuts better, so small counts are tried one by one
                 k = min(k + 1 if k < 8 else math.ceil(1.5 * k), cap)
-            if tilt > max_tilt:
+            if steep > max_tilt:
                 warnings.warn(
-                    f"patches='auto': {ps.n_patches} patches (the most tried) still leave a "
-                    f"{'jet slope' if measure == 'jet' else 'triangle'} {tilt:.0f} degrees from "
-                    f"its patch's axis (max_tilt "
-                    f"{max_tilt:g}); the template is rough or folded at the scale of its "
-                    "patches", RuntimeWarning, stacklevel=2)
+                    f"patches='auto': {tmpl.n_patches} patches (the most tried) still leave a "
+                    f"{'jet slope' if measure == 'jet' else 'triangle'} {steep:.0f} degrees "
+                    f"from its patch's axis (max_tilt {max_tilt:g}); the template is rough or "
+                    "folded at the scale of its patches", RuntimeWarning, stacklevel=2)
         else:
-            ps, tilt = fit_k(check_int(patches, "patches", high=max(1, v.shape[0])))
-        return replace(cls.from_patchset(ps, v), max_tilt=tilt)
+            tmpl, steep = fit_k(check_int(patches, "patches", high=max(1, v.shape[0])))
+        return replace(tmpl, max_tilt=steep)
 
     @classmethod
     def from_patchset(cls, ps, verts=None) -> JetTemplate:
