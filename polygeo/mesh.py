@@ -803,7 +803,7 @@ def _corner_angle(v: torch.Tensor, f: torch.Tensor, corner: int) -> torch.Tensor
     return torch.atan2(cr, (a * b).sum(-1))
 
 
-def dihedral_angles(vertices: Any, faces: Any) -> Dihedral:
+def dihedral_angles(vertices: Any, faces: Any, *, hinges: Dihedral | None = None) -> Dihedral:
     """Signed dihedral (bending) angles at interior manifold edges.
 
     Parameters
@@ -812,6 +812,10 @@ def dihedral_angles(vertices: Any, faces: Any) -> Dihedral:
         Vertex coordinates.
     faces : (F, 3) int
         Consistently wound triangles (see :func:`orient_faces`).
+    hinges : Dihedral, optional
+        A previous result for the same ``faces``: its ``edges`` and ``faces`` are reused and
+        the hinge topology is not searched again (solvers evaluate the angles many times on
+        one connectivity). Its ``angle`` and ``valid`` are ignored.
 
     Returns
     -------
@@ -830,14 +834,17 @@ def dihedral_angles(vertices: Any, faces: Any) -> Dihedral:
     v, numpy_in = _verts(vertices)
     fnp, fnumpy = _faces(faces, v.shape[-2])
     f = torch.from_numpy(fnp)
-    _, eid, count = edge_faces(fnp)
-    he = fnp[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
-    sel = (eid >= 0) & (count[np.maximum(eid, 0)] == 2)
-    order = np.argsort(eid[sel], kind="stable")
-    hs = np.flatnonzero(sel)[order]
-    h0, h1 = hs[0::2], hs[1::2]
-    fa, fb = h0 // 3, h1 // 3
-    e = he[h0]
+    if hinges is None:
+        _, eid, count = edge_faces(fnp)
+        he = fnp[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+        sel = (eid >= 0) & (count[np.maximum(eid, 0)] == 2)
+        order = np.argsort(eid[sel], kind="stable")
+        hs = np.flatnonzero(sel)[order]
+        h0, h1 = hs[0::2], hs[1::2]
+        fa, fb = h0 // 3, h1 // 3
+        e = he[h0]
+    else:
+        e, fa, fb = _hinge_topology(hinges, fnp.shape[0], v.shape[-2])
     c = _face_cross(v, f)
     fn, fok = _face_unit(c, v)
     n0, n1 = fn[..., torch.from_numpy(fa), :], fn[..., torch.from_numpy(fb), :]
@@ -857,6 +864,23 @@ def dihedral_angles(vertices: Any, faces: Any) -> Dihedral:
         to_like(ang, numpy_in),
         to_like(ok, numpy_in),
     )
+
+
+def _hinge_topology(
+    hinges: Dihedral, n_faces: int, n_vertices: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Validated ``(edges, face_a, face_b)`` of a previous :func:`dihedral_angles` result."""
+    if not isinstance(hinges, Dihedral):
+        raise TypeError(f"hinges: expected a Dihedral, got {type(hinges).__name__}")
+    e = np.asarray(torch.as_tensor(hinges.edges).cpu().numpy(), dtype=np.int64)
+    hf = np.asarray(torch.as_tensor(hinges.faces).cpu().numpy(), dtype=np.int64)
+    if e.ndim != 2 or e.shape[1] != 2 or hf.shape != e.shape:
+        raise ValueError(
+            f"hinges: expected edges and faces of shape (E, 2), got {e.shape} and {hf.shape}"
+        )
+    if e.size and (e.min() < 0 or e.max() >= n_vertices or hf.min() < 0 or hf.max() >= n_faces):
+        raise ValueError("hinges: indices out of range for these vertices and faces")
+    return e, hf[:, 0], hf[:, 1]
 
 
 def cotangent_weights(vertices: Any, faces: Any) -> CotanWeights:

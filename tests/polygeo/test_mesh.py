@@ -260,3 +260,19 @@ def test_orient_faces_moebius_not_orientable():
 def test_validators(call, exc):
     with pytest.raises(exc):
         call()
+
+
+def test_dihedral_hinges_reuse_matches_search():
+    u, w = np.meshgrid(np.linspace(0, 1, 5), np.linspace(0, 1, 5), indexing="ij")
+    v = np.stack([u.ravel(), w.ravel(), np.zeros(25)], 1)
+    a = np.array([i * 5 + j for i in range(4) for j in range(4)])
+    f = np.concatenate([np.stack([a, a + 5, a + 1], 1), np.stack([a + 1, a + 5, a + 6], 1)])
+    x = torch.tensor(v) + 0.05 * torch.randn(25, 3, generator=torch.Generator().manual_seed(0),
+                                              dtype=torch.float64)
+    d = mesh.dihedral_angles(x, f)
+    d2 = mesh.dihedral_angles(x, f, hinges=d)
+    assert torch.equal(d.angle, d2.angle)
+    with pytest.raises(TypeError, match="hinges"):
+        mesh.dihedral_angles(x, f, hinges=(d.edges, d.faces))
+    with pytest.raises(ValueError, match="hinges"):
+        mesh.dihedral_angles(x[:6], f[:1], hinges=d)

@@ -1,0 +1,269 @@
+"""Body collision, self repulsion and the GAPS covariance inextensibility (SI units, J).
+
+Part of :mod:`draping.physics`; import from there.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from polygeo import covariance, neighbors
+
+from .rest import RestState, _like, _positions, _positive, _reduce
+
+__all__ = [
+    "collision_energy",
+    "plane_distance",
+    "repulsion_pairs",
+    "repulsion_energy",
+    "inextensibility_energy",
+    "k_ext_schedule",
+]
+
+
+# ---------------------------------------------------------------------- collisions
+
+
+def collision_energy(
+    distance: torch.Tensor, stiffness: float = 1e4, eps: float = 2e-3, reduction: str = "sum"
+) -> torch.Tensor:
+    """Cubic body-collision penalty, thesis eq. (27) with p = 3, eq. (40).
+
+    ``sum_i k_c max(eps - d_i, 0)^3`` on the signed distances ``d_i`` of the garment vertices to
+    the body (positive outside). The caller computes ``d`` from its body query so that it
+    carries the gradient it wants, e.g. :func:`plane_distance` on the closest point and normal
+    (SNUG, GAPS) for a distance linear in ``x``.
+
+    Parameters
+    ----------
+    distance : (..., V) float tensor
+        Signed distances (m), positive outside the body.
+    stiffness : float
+        ``k_c`` (J/m^3), >= 0; the penalty force is ``3 k_c (eps - d)^2`` (N).
+    eps : float
+        Clearance ``epsilon`` (m), >= 0; 2 mm as SNUG and GAPS.
+    reduction : {"sum", "none"}
+        Per frame ``(...)`` or per vertex ``(..., V)``.
+
+    Returns
+    -------
+    float tensor
+        Energy (J).
+
+    Raises
+    ------
+    ValueError
+        Negative stiffness or clearance, an unknown reduction.
+    TypeError
+        ``distance`` not a floating tensor.
+    """
+    if not isinstance(distance, torch.Tensor) or not distance.is_floating_point():
+        raise TypeError(f"distance: expected a floating tensor, got {type(distance).__name__}")
+    k = _positive(stiffness, "stiffness", strict=False)
+    e = _positive(eps, "eps", strict=False)
+    pen = torch.clamp(e - distance, min=0.0)
+    return _reduce(k * pen**3, reduction)
+
+
+def plane_distance(x: torch.Tensor, anchor: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
+    """Signed distance to the tangent plane of the body: ``n . (x - p)``.
+
+    With ``p`` the closest body point and ``n`` the outward unit normal there (from the body
+    query at a nearby position), this is the body's signed distance to first order, linear in
+    ``x``: its gradient is ``n``.
+
+    Parameters
+    ----------
+    x : (..., V, 3) float tensor
+        Garment positions (m).
+    anchor : (..., V, 3) float tensor
+        Closest body points ``p`` (m).
+    normal : (..., V, 3) float tensor
+        Outward unit normals ``n``.
+
+    Returns
+    -------
+    (..., V) float tensor
+        Signed distances (m).
+
+    Raises
+    ------
+    ValueError
+        Shapes that do not broadcast.
+    """
+    try:
+        return ((x - anchor) * normal).sum(-1)
+    except RuntimeError as exc:
+        raise ValueError(
+            f"anchor, normal: expected shapes broadcastable to x {tuple(x.shape)}, got "
+            f"{tuple(anchor.shape)} and {tuple(normal.shape)}"
+        ) from exc
+
+
+def repulsion_pairs(x: Any, rest: RestState, delta: float, k: int = 16) -> torch.Tensor:
+    """Non-adjacent vertex pairs closer than ``delta`` (the set ``A_i`` of thesis eq. (28)).
+
+    Parameters
+    ----------
+    x : (V, 3) float array or tensor
+        Current positions of one frame (m).
+    rest : RestState
+        Gives the 1-ring (adjacent vertices are excluded).
+    delta : float
+        Threshold ``delta`` (m), > 0.
+    k : int
+        At most ``k`` nearest candidates per vertex (memory ``O(V k)``).
+
+    Returns
+    -------
+    (V, k) int64 tensor
+        Partner indices, ``-1`` where none; each pair appears from both ends.
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, ``delta <= 0`` or ``k < 1``.
+    """
+    delta = _positive(delta, "delta")
+    if int(k) != k or k < 1:
+        raise ValueError(f"k: expected an integer >= 1, got {k}")
+    xt = torch.as_tensor(x).detach().cpu().to(torch.float64)
+    _positions(xt, rest.n_vertices)
+    nb = neighbors.knn(xt.numpy(), int(k) + rest.ring_index.shape[1])
+    idx = np.asarray(nb.index)
+    ok = np.asarray(nb.mask) & (np.asarray(nb.distance) < delta)
+    ring = rest.ring_index.numpy()
+    adjacent = (idx[:, :, None] == ring[:, None, :]).any(-1)  # includes the vertex itself
+    ok &= ~adjacent
+    out = np.full((idx.shape[0], int(k)), -1, dtype=np.int64)
+    order = np.argsort(~ok, axis=1, kind="stable")[:, : int(k)]
+    take = np.take_along_axis(idx, order, 1)
+    keep = np.take_along_axis(ok, order, 1)
+    out[keep] = take[keep]
+    return torch.from_numpy(out)
+
+
+def repulsion_energy(
+    x: torch.Tensor, pairs: torch.Tensor, delta: float, weight: float = 1.0
+) -> torch.Tensor:
+    """Self-repulsion, thesis eq. (28).
+
+    ``lambda sum_i sum_{j in A_i} -log(|x_i - x_j|^2 / delta^2)``.
+
+    The ``delta^2`` makes each term vanish at the threshold (eq. (28) up to a constant per
+    pair, continuous where a pair enters or leaves ``A_i``); pairs farther than ``delta`` in
+    ``x`` contribute nothing. Distances are floored at ``1e-3 delta`` (no infinite energy).
+
+    Parameters
+    ----------
+    x : (..., V, 3) float tensor
+        Positions (m).
+    pairs : (V, k) int64 tensor
+        Partners from :func:`repulsion_pairs`, ``-1`` padding.
+    delta : float
+        Threshold (m), > 0.
+    weight : float
+        ``lambda_rep`` (J), >= 0.
+
+    Returns
+    -------
+    (...) float tensor
+        Energy (J).
+
+    Raises
+    ------
+    ValueError
+        Bad shapes or parameters.
+    """
+    delta = _positive(delta, "delta")
+    w = _positive(weight, "weight", strict=False)
+    if pairs.ndim != 2 or pairs.shape[0] != x.shape[-2]:
+        raise ValueError(f"pairs: expected shape ({x.shape[-2]}, k), got {tuple(pairs.shape)}")
+    _positions(x, pairs.shape[0])
+    ok = pairs >= 0
+    d = x[..., pairs.clamp_min(0), :] - x[..., :, None, :]  # (..., V, k, 3)
+    r2 = (d * d).sum(-1).clamp_min((1e-3 * delta) ** 2) / (delta * delta)
+    term = torch.where(ok & (r2 < 1.0), -torch.log(torch.clamp(r2, max=1.0)), torch.zeros_like(r2))
+    return w * term.sum((-1, -2))
+
+
+# ---------------------------------------------------------------------- GAPS inextensibility
+
+
+def inextensibility_energy(
+    x: torch.Tensor, rest: RestState, k_ext: Any = 1.0, weight: float = 2e8
+) -> torch.Tensor:
+    """GAPS covariance inextensibility, thesis eq. (44), on the 1-rings of the template.
+
+    ``k_i sum_i sum_j |det(C_i - k_ext sigma_ij I)|`` with ``C_i`` the covariance of the
+    deformed 1-ring of vertex ``i`` and ``sigma_ij`` the singular values of its rest covariance
+    (:mod:`polygeo.covariance`).
+
+    Parameters
+    ----------
+    x : (..., V, 3) float tensor
+        Positions (m).
+    rest : RestState
+        1-rings and rest singular values.
+    k_ext : float or (..., V) float
+        Allowed extension (>= 0): 1 inextensible, > 1 stretch (see :func:`k_ext_schedule`).
+    weight : float
+        ``k_i``; 2e8 as in GAPS (a loss weight, J/m^6 when ``x`` is in metres).
+
+    Returns
+    -------
+    (...) float tensor
+        Energy (``k_i`` times m^6).
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, negative ``k_ext``.
+    """
+    _positions(x, rest.n_vertices)
+    cov = covariance.vertex_covariance(x, rest.ring_index, rest.ring_mask)
+    per = covariance.inextensibility_residual(
+        cov,
+        _like(rest.ring_sigma, x),
+        k_ext,
+        weight=_positive(weight, "weight", strict=False),
+        reduction="none",
+    )
+    return per.sum(-1)
+
+
+def k_ext_schedule(distance: Any, epoch: int, eps: float = 2e-3) -> torch.Tensor:
+    """GAPS collision-aware extension, thesis eq. (45): ``1 + min(10 d_c, 0.03) min(e, 100)``.
+
+    ``d_c = max(eps - d, 0)`` (m) is the penetration of each vertex, ``e`` the epoch: the
+    garment is allowed to stretch (up to ``1 + 0.03 * 100 = 4``) only where it collides, and
+    only gradually.
+
+    Parameters
+    ----------
+    distance : (..., V) float
+        Signed distances to the body (m), positive outside.
+    epoch : int
+        Training epoch ``e`` >= 0.
+    eps : float
+        Clearance (m) of the collision term.
+
+    Returns
+    -------
+    (..., V) float tensor
+        ``k_ext`` per vertex (detached: a schedule, not a loss).
+
+    Raises
+    ------
+    ValueError
+        Negative epoch or clearance.
+    """
+    if int(epoch) != epoch or epoch < 0:
+        raise ValueError(f"epoch: expected an integer >= 0, got {epoch}")
+    e = _positive(eps, "eps", strict=False)
+    d = torch.as_tensor(distance).detach()
+    dc = torch.clamp(e - d, min=0.0)
+    return 1.0 + torch.clamp(10.0 * dc, max=0.03) * min(int(epoch), 100)
