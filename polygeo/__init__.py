@@ -9,6 +9,7 @@ Sub-modules (imported on first access, so that ``import polygeo`` stays cheap):
 ``covariance``  per-vertex covariance descriptors and the GAPS inextensibility residual
 ``mesh``        edge lengths, areas, normals, adjacency of triangle meshes
 ``io``          reading and writing point clouds and meshes
+``runs``        atomic writes, safe checkpoints, resume by settings fingerprint, logs, progress
 ``partition``   ACVD-like partition of a surface into patches
 ``patches``     PatchSet: oriented n-jet patches (PolyFit)
 ``stn``         rigid spatial transformer refining patch orientations
@@ -49,6 +50,7 @@ _SUBMODULES = (
     "covariance",
     "mesh",
     "io",
+    "runs",
     "partition",
     "patches",
     "stn",
