@@ -23,7 +23,7 @@ from typing import Any
 
 import torch
 
-from ._validate import as_tensor, check_choice, check_finite, check_shape, is_numpy_like, to_like
+from .checks import as_tensor, check_choice, check_finite, check_shape, is_numpy_like, to_like
 
 __all__ = ["vertex_covariance", "singular_values", "inextensibility_residual"]
 

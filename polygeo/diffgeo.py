@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ._validate import as_tensor, check_shape
+from .checks import as_tensor, check_shape
 from .jets import _as_coeffs, _exponents_np, derivatives
 
 __all__ = [

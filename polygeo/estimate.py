@@ -52,7 +52,7 @@ from ._diffgeo_numba import jet_geometry, origin_geometry
 from ._frames_numba import height_frame, height_frames_par, height_frames_ser
 from ._jets_numba import _factor, _solve, accumulate_sample, fit_item, fit_scratch
 from ._numba_util import finite_rows, njit_pair
-from ._validate import as_tensor, check_choice, check_int, check_positive, check_shape
+from .checks import as_tensor, check_choice, check_faces, check_int, check_positive, check_shape
 from .neighbors import PointIndex, mesh_k_ring
 from .status import Status
 
@@ -1032,16 +1032,7 @@ def _representatives(P: np.ndarray, finite: np.ndarray) -> np.ndarray:
 
 
 def _faces_np(faces: Any, n: int) -> np.ndarray:
-    f = as_tensor(faces, "faces", floating=False)
-    if f.is_floating_point() or f.dtype == torch.bool:
-        raise TypeError(f"faces: expected an integer array, got dtype {f.dtype}")
-    check_shape(f, "faces", ("F", 3))
-    f = f.to(torch.int64).numpy()
-    if f.size and (f.min() < 0 or f.max() >= n):
-        raise ValueError(
-            f"faces: expected vertex indices in [0, {n - 1}], got [{f.min()}, {f.max()}]"
-        )
-    return f
+    return check_faces(faces, n).cpu().numpy()
 
 
 def _orientation(P, nrm, status, graph, ref, faces, orient, workers) -> np.ndarray:

@@ -19,7 +19,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from ._validate import as_tensor, check_choice, check_int, check_shape
+from .checks import as_tensor, check_choice, check_int, check_shape
 
 __all__ = [
     "PCAFrame",

@@ -38,7 +38,7 @@ from functools import cache
 import numpy as np
 import torch
 
-from ._validate import as_tensor, check_choice, check_int, check_positive, check_shape
+from .checks import as_tensor, check_choice, check_int, check_positive, check_shape
 from .status import Status
 
 #: Parameter samples whose covariance has ``det <= COLLINEAR_TOL * trace^2`` lie on a line

@@ -21,7 +21,15 @@ import scipy.sparse as sp
 import torch
 from scipy.sparse.csgraph import connected_components as _cc
 
-from ._validate import as_tensor, check_choice, check_int, check_shape, is_numpy_like, to_like
+from .checks import (
+    as_tensor,
+    check_choice,
+    check_faces,
+    check_int,
+    check_shape,
+    is_numpy_like,
+    to_like,
+)
 
 __all__ = [
     "FaceNormals",
@@ -191,20 +199,8 @@ class OrientedFaces(NamedTuple):
 
 
 def _faces(faces: Any, n_vertices: int | None = None) -> tuple[np.ndarray, bool]:
-    numpy_in = is_numpy_like(faces)
-    t = as_tensor(faces, "faces", floating=False)
-    if t.is_floating_point() or t.dtype == torch.bool:
-        raise TypeError(f"faces: expected an integer array, got dtype {t.dtype}")
-    check_shape(t, "faces", ("F", 3))
-    f = t.detach().cpu().to(torch.int64).numpy()
-    if f.size:
-        hi = f.max()
-        if f.min() < 0 or (n_vertices is not None and hi >= n_vertices):
-            top = "inf" if n_vertices is None else n_vertices - 1
-            raise ValueError(
-                f"faces: expected vertex indices in [0, {top}], got values in [{f.min()}, {hi}]"
-            )
-    return f, numpy_in
+    """Checked faces as an int64 NumPy array, and whether the input was NumPy-like."""
+    return check_faces(faces, n_vertices).cpu().numpy(), is_numpy_like(faces)
 
 
 def _out(arr: np.ndarray, numpy_in: bool) -> Any:
@@ -219,8 +215,7 @@ def _verts(vertices: Any) -> tuple[torch.Tensor, bool]:
 
 
 def _geom_faces(faces: Any, n: int) -> torch.Tensor:
-    f, _ = _faces(faces, n)
-    return torch.from_numpy(f)
+    return check_faces(faces, n).cpu()
 
 
 def _safe_norm(x: torch.Tensor, eps: float) -> tuple[torch.Tensor, torch.Tensor]:

@@ -22,9 +22,10 @@ import torch
 from scipy.spatial import cKDTree
 
 from ._numba_util import finite_rows, njit_pair
-from ._validate import (
+from .checks import (
     as_tensor,
     check_choice,
+    check_faces,
     check_int,
     check_positive,
     check_shape,
@@ -585,21 +586,6 @@ def radius_neighbors(
     return Neighbors(_out(index, numpy_in), _out(dist, numpy_in), _out(mask, numpy_in))
 
 
-def _faces_np(faces: Any, n_vertices: int) -> tuple[np.ndarray, bool]:
-    numpy_in = is_numpy_like(faces)
-    t = as_tensor(faces, "faces", floating=False)
-    if t.is_floating_point() or t.dtype == torch.bool:
-        raise TypeError(f"faces: expected an integer array, got dtype {t.dtype}")
-    check_shape(t, "faces", ("F", 3))
-    f = t.detach().cpu().to(torch.int64).numpy()
-    if f.size and (f.min() < 0 or f.max() >= n_vertices):
-        raise ValueError(
-            f"faces: expected vertex indices in [0, {n_vertices - 1}], "
-            f"got values in [{f.min()}, {f.max()}]"
-        )
-    return f, numpy_in
-
-
 def vertex_adjacency(faces: Any, n_vertices: int) -> sp.csr_matrix:
     """Symmetric vertex adjacency of a triangle mesh.
 
@@ -624,7 +610,7 @@ def vertex_adjacency(faces: Any, n_vertices: int) -> sp.csr_matrix:
         Non-integer faces.
     """
     n = check_int(n_vertices, "n_vertices", low=0)
-    f, _ = _faces_np(faces, n)
+    f = check_faces(faces, n).cpu().numpy()
     a = np.concatenate([f[:, 0], f[:, 1], f[:, 2]])
     b = np.concatenate([f[:, 1], f[:, 2], f[:, 0]])
     keep = a != b
@@ -676,7 +662,7 @@ def mesh_k_ring(
     """
     n = check_int(n_vertices, "n_vertices", low=0)
     k = check_int(k, "k", low=1)
-    f, numpy_in = _faces_np(faces, n)
+    f, numpy_in = check_faces(faces, n).cpu().numpy(), is_numpy_like(faces)
     adj = vertex_adjacency(f, n)
     step = (adj + sp.identity(n, format="csr")).tocsr()
     reached = sp.identity(n, format="csr", dtype=np.float64)

@@ -30,7 +30,7 @@ import scipy.sparse as sp
 import torch
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
 
-from ._validate import as_tensor, check_int, check_shape, is_numpy_like, to_like
+from .checks import as_tensor, check_int, check_shape, is_numpy_like, to_like
 from .mesh import orient_faces, vertex_normals
 from .neighbors import knn
 

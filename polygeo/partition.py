@@ -32,11 +32,10 @@ from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
-import torch
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from ._validate import as_tensor, check_finite, check_int, check_positive, check_shape
+from .checks import as_tensor, check_faces, check_finite, check_int, check_positive, check_shape
 
 __all__ = [
     "Partition",
@@ -137,20 +136,6 @@ def _vertices_np(x: Any, name: str) -> np.ndarray:
     return t.detach().cpu().numpy().astype(np.float64, copy=True)
 
 
-def _faces_np(faces: Any, n_vertices: int) -> np.ndarray:
-    t = as_tensor(faces, "faces", floating=False)
-    if t.is_floating_point() or t.dtype == torch.bool:
-        raise TypeError(f"faces: expected an integer array, got dtype {t.dtype}")
-    check_shape(t, "faces", ("F", 3))
-    f = t.detach().cpu().numpy().astype(np.int64, copy=True)
-    if f.size and (f.min() < 0 or f.max() >= n_vertices):
-        raise ValueError(
-            f"faces: expected vertex indices in [0, {n_vertices - 1}], "
-            f"got values in [{f.min()}, {f.max()}]"
-        )
-    return f
-
-
 def _clean_faces(faces: np.ndarray) -> np.ndarray:
     """Drop faces that repeat a vertex (no area, no orientation)."""
     ok = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
@@ -209,7 +194,7 @@ def mesh_area(vertices: Any, faces: Any) -> float:
         If ``faces`` is not an integer array.
     """
     v = _vertices_np(vertices, "vertices")
-    f = _faces_np(faces, len(v))
+    f = check_faces(faces, len(v)).cpu().numpy()
     return float(_vertex_areas(v, f).sum())
 
 
@@ -401,7 +386,7 @@ def partition_mesh(
     import pyvista as pv
 
     v = _vertices_np(vertices, "vertices")
-    f = _clean_faces(_faces_np(faces, len(v)))
+    f = _clean_faces(check_faces(faces, len(v)).cpu().numpy())
     if len(f) == 0:
         raise ValueError("faces: expected at least one non-degenerate triangle, got none")
     min_vertices = check_int(min_vertices, "min_vertices", low=1)

@@ -41,9 +41,10 @@ import numpy as np
 import torch
 
 from . import jets
-from ._validate import (
+from .checks import (
     as_tensor,
     check_choice,
+    check_faces,
     check_finite,
     check_int,
     check_positive,
@@ -319,17 +320,7 @@ def subdivide_barycentric(
 
 
 def _faces_np(faces: Any, n_vertices: int) -> np.ndarray:
-    t = as_tensor(faces, "faces", floating=False)
-    if t.is_floating_point() or t.dtype == torch.bool:
-        raise TypeError(f"faces: expected an integer array, got dtype {t.dtype}")
-    check_shape(t, "faces", ("F", 3))
-    f = t.detach().cpu().numpy().astype(np.int64)
-    if f.size and (f.min() < 0 or f.max() >= n_vertices):
-        raise ValueError(
-            f"faces: expected vertex indices in [0, {n_vertices - 1}], "
-            f"got values in [{f.min()}, {f.max()}]"
-        )
-    return f
+    return check_faces(faces, n_vertices).cpu().numpy()
 
 
 def _sample_surface(v: np.ndarray, f: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:

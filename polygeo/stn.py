@@ -42,7 +42,7 @@ import torch
 from torch import nn
 
 from . import jets
-from ._validate import as_tensor, check_finite, check_int, check_positive, check_shape
+from .checks import as_tensor, check_finite, check_int, check_positive, check_shape
 from .frames import (
     Orientation,
     axis_angle_to_matrix,
@@ -332,7 +332,7 @@ class PatchSTN(nn.Module):
         context: bool = False,
     ):
         super().__init__()
-        from ._validate import check_choice
+        from .checks import check_choice
 
         self.features = check_choice(features, "features", STN_FEATURES)
         self.output = check_choice(output, "output", STN_OUTPUTS)

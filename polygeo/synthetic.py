@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._validate import check_int, check_positive
+from .checks import check_int, check_positive
 
 __all__ = [
     "AnalyticSample",

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from polygeo._validate import as_tensor, check_shape
+from polygeo.checks import as_tensor, check_shape
 
 __all__ = ["FrameErrors", "e_3d", "e_n", "rmse", "frame_errors", "summarize"]
 

@@ -44,7 +44,7 @@ import numpy as np
 import torch
 
 from polygeo import jets
-from polygeo._validate import (
+from polygeo.checks import (
     as_tensor,
     check_choice,
     check_finite,

@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from polygeo._validate import check_choice, check_int, check_positive
+from polygeo.checks import check_choice, check_int, check_positive
 from polygeo.io import write_ply
 from polygeo.render import RasterSettings
 

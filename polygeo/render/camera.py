@@ -18,7 +18,7 @@ from typing import Any
 
 import torch
 
-from .._validate import as_tensor, check_finite, check_int, check_shape, is_numpy_like, to_like
+from ..checks import as_tensor, check_finite, check_int, check_shape, is_numpy_like, to_like
 
 __all__ = ["Camera"]
 

@@ -12,7 +12,7 @@ from typing import Any
 
 import torch
 
-from .._validate import as_tensor, check_choice, is_numpy_like, to_like
+from ..checks import as_tensor, check_choice, is_numpy_like, to_like
 
 __all__ = ["silhouette_loss", "rgb_loss", "soft_iou", "iou"]
 

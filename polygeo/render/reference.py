@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as tnf
 from torch.utils.checkpoint import checkpoint
 
-from .._validate import is_numpy_like
+from ..checks import is_numpy_like
 from .camera import Camera
 from .settings import RasterSettings
 from .soft import RenderOutput, _attributes, _finish, _interp_at, _prepare

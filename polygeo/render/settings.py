@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .._validate import check_int, check_positive
+from ..checks import check_int, check_positive
 
 __all__ = ["RasterSettings", "sigma_from_softras"]
 

@@ -35,7 +35,7 @@ import numba
 import numpy as np
 import torch
 
-from .._validate import as_tensor, check_choice, check_finite, check_shape, is_numpy_like
+from ..checks import as_tensor, check_choice, check_faces, check_finite, check_shape, is_numpy_like
 from . import _kernels as K
 from .camera import Camera
 from .settings import RasterSettings
@@ -288,17 +288,7 @@ def _prepare(verts, faces, camera, settings, coords):
     if v.ndim not in (2, 3):
         raise ValueError(f"verts: expected shape (V, 3) or (B, V, 3), got {tuple(v.shape)}")
     check_finite(v.detach(), "verts")
-    f = as_tensor(faces, "faces", floating=False)
-    if f.is_floating_point() or f.dtype == torch.bool:
-        raise TypeError(f"faces: expected an integer array, got dtype {f.dtype}")
-    check_shape(f, "faces", ("F", 3))
-    f = f.long()
-    nv = v.shape[-2]
-    if f.numel() and (int(f.min()) < 0 or int(f.max()) >= nv):
-        raise ValueError(
-            f"faces: expected vertex indices in [0, {nv - 1}], got values in "
-            f"[{int(f.min())}, {int(f.max())}]"
-        )
+    f = check_faces(faces, v.shape[-2])
     cb = camera.batch_size
     vb = v.shape[0] if v.ndim == 3 else None
     if cb is not None and vb is not None and cb != vb:

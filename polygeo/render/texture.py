@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .._validate import as_tensor, check_int, check_shape, is_numpy_like, to_like
+from ..checks import as_tensor, check_int, check_shape, is_numpy_like, to_like
 
 __all__ = ["sample_texture", "flip_v", "checkerboard"]
 

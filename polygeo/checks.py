@@ -1,9 +1,19 @@
-"""Shared input validation and array-type helpers.
+"""Input validation and array-type helpers, public for every layer built on polygeo.
 
-Every public function validates its user-facing inputs through these helpers so that
-messages are uniform: they name the argument, what was expected and what was received.
-``ValueError`` is raised for bad shapes and values, ``TypeError`` for bad types and dtypes.
-No bare ``assert`` is used for user input (it vanishes under ``python -O``).
+Every public function of ``polygeo``, ``sft`` and ``draping`` validates its user-facing
+inputs through these helpers so that messages are uniform: they name the argument, what
+was expected and what was received. ``ValueError`` is raised for bad shapes and values,
+``TypeError`` for bad types and dtypes. No bare ``assert`` is used for user input (it
+vanishes under ``python -O``).
+
+Examples
+--------
+>>> import numpy as np
+>>> from polygeo.checks import as_tensor, check_faces, check_shape
+>>> v = as_tensor(np.zeros((4, 3)), "vertices")
+>>> check_shape(v, "vertices", ("N", 3))
+>>> check_faces(np.array([[0, 1, 2], [0, 2, 3]]), n_vertices=4).dtype
+torch.int64
 """
 
 from __future__ import annotations
@@ -14,6 +24,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from .types import Array, ArrayLike, DeviceLike
+
 __all__ = [
     "as_tensor",
     "check_shape",
@@ -21,6 +33,7 @@ __all__ = [
     "check_positive",
     "check_int",
     "check_choice",
+    "check_faces",
     "to_like",
     "is_numpy_like",
 ]
@@ -28,17 +41,17 @@ __all__ = [
 _FLOAT_DTYPES = (torch.float16, torch.bfloat16, torch.float32, torch.float64)
 
 
-def is_numpy_like(x: Any) -> bool:
+def is_numpy_like(x: ArrayLike) -> bool:
     """Return True when ``x`` is not a torch tensor (NumPy array, list, scalar)."""
     return not isinstance(x, torch.Tensor)
 
 
 def as_tensor(
-    x: Any,
+    x: ArrayLike,
     name: str,
     *,
     dtype: torch.dtype | None = None,
-    device: torch.device | str | None = None,
+    device: DeviceLike | None = None,
     floating: bool = True,
 ) -> torch.Tensor:
     """Convert ``x`` (NumPy array, torch tensor, nested sequence) to a torch tensor.
@@ -97,7 +110,7 @@ def as_tensor(
     return t
 
 
-def check_shape(t: torch.Tensor | np.ndarray, name: str, shape: Sequence[int | str | None]) -> None:
+def check_shape(t: Array, name: str, shape: Sequence[int | str | None]) -> None:
     """Check ``t``'s shape against a pattern.
 
     Parameters
@@ -185,7 +198,61 @@ def check_choice(value: Any, name: str, choices: Sequence[Any]) -> Any:
     return value
 
 
-def to_like(t: torch.Tensor, like_numpy: bool) -> Any:
+def check_faces(
+    faces: ArrayLike, n_vertices: int | None = None, name: str = "faces"
+) -> torch.Tensor:
+    """Check a triangle list and return it as an int64 tensor.
+
+    The one faces validator of the library (mesh, neighbours, partition, patches, estimate
+    and the rasterizer all call it), so a bad triangle list gets the same message everywhere.
+
+    Parameters
+    ----------
+    faces : array_like or torch.Tensor, shape (F, 3), integer dtype
+        Triangles as vertex indices. NumPy arrays, nested sequences and torch tensors (on
+        any device) are accepted; ``F = 0`` is allowed.
+    n_vertices : int, optional
+        Number of vertices ``N``; when given, every index must lie in ``[0, N)``. When None
+        only negative indices are refused.
+    name : str
+        Argument name used in error messages.
+
+    Returns
+    -------
+    torch.Tensor
+        ``(F, 3)`` int64 tensor on the input's device (CPU for NumPy or sequences). It may
+        share memory with ``faces`` (an int64 tensor comes back as is): do not modify it in
+        place. Call ``.cpu().numpy()`` for a NumPy array.
+
+    Raises
+    ------
+    TypeError
+        If ``faces`` is not numeric or has a floating-point, complex or boolean dtype, or
+        ``n_vertices`` is not an integer.
+    ValueError
+        If the shape is not ``(F, 3)``, an index is negative or (with ``n_vertices``) is
+        ``>= n_vertices``, or ``n_vertices`` is negative.
+    """
+    t = as_tensor(faces, name, floating=False)
+    if t.is_floating_point() or t.dtype == torch.bool:
+        raise TypeError(f"{name}: expected an integer array, got dtype {t.dtype}")
+    check_shape(t, name, ("F", 3))
+    if n_vertices is not None:
+        n_vertices = check_int(n_vertices, "n_vertices", low=0)
+    t = t.to(torch.int64)
+    if t.numel():
+        lo, hi = int(t.min()), int(t.max())
+        if lo < 0 or (n_vertices is not None and hi >= n_vertices):
+            want = (
+                "non-negative vertex indices"
+                if n_vertices is None
+                else f"vertex indices in [0, {n_vertices - 1}] (n_vertices={n_vertices})"
+            )
+            raise ValueError(f"{name}: expected {want}, got values in [{lo}, {hi}]")
+    return t
+
+
+def to_like(t: torch.Tensor, like_numpy: bool) -> Array:
     """Return ``t`` detached as a NumPy array when ``like_numpy`` else unchanged."""
     if like_numpy:
         return t.detach().cpu().numpy()
