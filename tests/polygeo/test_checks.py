@@ -154,7 +154,8 @@ def test_check_int_refuses_out_of_range(value, low, high):
 
 def test_check_choice():
     assert check_choice("mean", "reduction", ("mean", "sum")) == "mean"
-    with pytest.raises(ValueError, match=r"reduction: expected one of \['mean', 'sum'\], got 'max'"):
+    msg = r"reduction: expected one of \['mean', 'sum'\], got 'max'"
+    with pytest.raises(ValueError, match=msg):
         check_choice("max", "reduction", ("mean", "sum"))
 
 
