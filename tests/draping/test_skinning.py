@@ -1,0 +1,145 @@
+import numpy as np
+import pytest
+import torch
+
+from draping.skinning import (
+    dense_body_weights,
+    laplacian_weights,
+    nearest_weights,
+    rbf_weights,
+    skinning_weights,
+)
+
+
+def _limb(n_theta=24, n_z=41, radius=0.1, n_bones=5):
+    """A capped-free cylinder of body vertices, one bone per height band (one-hot weights)."""
+    th, z = np.meshgrid(np.linspace(0, 2 * np.pi, n_theta, endpoint=False), np.linspace(0, 1, n_z))
+    verts = np.stack([radius * np.cos(th), radius * np.sin(th), z], -1).reshape(-1, 3)
+    band = np.minimum((verts[:, 2] * n_bones).astype(int), n_bones - 1)
+    weights = np.eye(n_bones)[band]
+    return verts, weights
+
+
+def _sleeve(offset, radius=0.1, n_theta=16, n_z=21):
+    """A garment cylinder ``offset`` outside the limb, with its triangles."""
+    th, z = np.meshgrid(np.linspace(0, 2 * np.pi, n_theta, endpoint=False), np.linspace(0, 1, n_z))
+    r = radius + offset
+    verts = np.stack([r * np.cos(th), r * np.sin(th), z], -1).reshape(-1, 3)
+    faces = []
+    for i in range(n_z - 1):
+        for j in range(n_theta):
+            a, b = i * n_theta + j, i * n_theta + (j + 1) % n_theta
+            c, d = a + n_theta, b + n_theta
+            faces += [(a, b, d), (a, d, c)]
+    return verts, np.array(faces)
+
+
+@pytest.mark.parametrize("method", ["nearest", "laplacian", "rbf"])
+def test_rows_sum_to_one_and_are_non_negative(method):
+    body, w = _limb()
+    garment, faces = _sleeve(0.05)
+    out = skinning_weights(method, garment, body, w, garment_faces=faces)
+    assert out.shape == (garment.shape[0], w.shape[1])
+    assert np.all(out >= 0)
+    np.testing.assert_allclose(out.sum(1), 1.0, atol=1e-12)
+
+
+def test_points_on_the_skin_take_the_body_weights():
+    rng = np.random.default_rng(0)
+    body = rng.normal(size=(300, 3))
+    w = rng.dirichlet(np.ones(7), size=300)
+    pick = rng.choice(300, 50, replace=False)
+    for fn in (nearest_weights, rbf_weights):
+        np.testing.assert_allclose(fn(body[pick], body, w), w[pick], atol=1e-12)
+    # A hair off the skin: the RBF kernel is narrow there, so the nearest vertex dominates.
+    near = body[pick] + 1e-6 * rng.normal(size=(50, 3))
+    np.testing.assert_allclose(rbf_weights(near, body, w), w[pick], atol=1e-6)
+
+
+def test_rbf_blends_more_bones_far_from_the_body():
+    body, w = _limb()
+    counts = []
+    for offset in (0.005, 0.05, 0.3):
+        garment, _ = _sleeve(offset)
+        out = rbf_weights(garment, body, w)
+        counts.append(np.mean((out > 1e-3).sum(1)))
+    assert counts[0] < counts[1] < counts[2]
+    # Nearest-vertex skinning never blends: always one bone on this one-hot body.
+    garment, _ = _sleeve(0.3)
+    assert np.all((nearest_weights(garment, body, w) > 0).sum(1) == 1)
+
+
+def test_rbf_truncation_matches_the_full_participation_matrix():
+    rng = np.random.default_rng(1)
+    body = rng.normal(size=(400, 3))
+    w = rng.dirichlet(np.ones(4), size=400)
+    garment = 1.5 * rng.normal(size=(60, 3))
+    d = np.linalg.norm(garment[:, None] - body[None], axis=-1)  # (G, V) brute force
+    m = d.min(1, keepdims=True)
+    phi = np.exp(-((d - m) ** 2) / (0.5 * m**2))
+    full = phi @ w
+    full /= full.sum(1, keepdims=True)
+    got = rbf_weights(garment, body, w, tol=1e-12, chunk=7)
+    np.testing.assert_allclose(got, full, atol=1e-9)
+    # The default truncation changes the weights by about the dropped participation only.
+    np.testing.assert_allclose(rbf_weights(garment, body, w), full, atol=5e-3)
+
+
+def test_laplacian_smooths_a_weight_jump():
+    body, w = _limb(n_bones=2)
+    garment, faces = _sleeve(0.2)
+    raw = laplacian_weights(garment, faces, body, w, iterations=0)
+    np.testing.assert_allclose(raw, nearest_weights(garment, body, w))
+    smooth = laplacian_weights(garment, faces, body, w, iterations=30)
+    # Along the sleeve the first bone's weight falls from 1 to 0: smoothing spreads the step.
+    z = garment[:, 2]
+    mid = np.abs(z - 0.5) < 0.08
+    assert np.all(np.isin(raw[mid, 0], (0.0, 1.0)))
+    assert np.any((smooth[mid, 0] > 0.05) & (smooth[mid, 0] < 0.95))
+    assert np.diff(smooth[np.argsort(z), 0]).max() < 0.2 + np.diff(raw[np.argsort(z), 0]).max()
+
+
+def test_sparse_body_weights_equal_dense():
+    rng = np.random.default_rng(2)
+    body = rng.normal(size=(100, 3))
+    idx = np.stack([rng.choice(12, 3, replace=False) for _ in range(100)])
+    val = rng.dirichlet(np.ones(3), size=100)
+    idx[:5, 2] = -1  # padding
+    val[:5, 2] = 0.0
+    dense = dense_body_weights((idx, val), 100, n_bones=12)
+    assert dense.shape == (100, 12)
+    garment = rng.normal(size=(30, 3))
+    np.testing.assert_allclose(rbf_weights(garment, body, (idx, val)), rbf_weights(garment, body, dense))
+
+
+def test_torch_in_torch_out():
+    body, w = _limb()
+    garment, _ = _sleeve(0.05)
+    out = rbf_weights(torch.from_numpy(garment), body, w)
+    assert isinstance(out, torch.Tensor)
+    np.testing.assert_allclose(out.numpy(), rbf_weights(garment, body, w))
+
+
+def test_bad_input_is_named():
+    body, w = _limb()
+    garment, faces = _sleeve(0.05)
+    with pytest.raises(ValueError, match="method"):
+        skinning_weights("linear", garment, body, w)
+    with pytest.raises(ValueError, match="garment_faces"):
+        skinning_weights("laplacian", garment, body, w)
+    with pytest.raises(ValueError, match="garment_vertices"):
+        rbf_weights(garment[:, :2], body, w)
+    bad = garment.copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(ValueError, match="garment_vertices"):
+        nearest_weights(bad, body, w)
+    with pytest.raises(ValueError, match="weights"):
+        rbf_weights(garment, body, w[:-1])
+    with pytest.raises(ValueError, match="weights"):
+        rbf_weights(garment, body, -w)
+    with pytest.raises(ValueError, match="width"):
+        rbf_weights(garment, body, w, width=0)
+    with pytest.raises(ValueError, match="alpha"):
+        laplacian_weights(garment, faces, body, w, alpha=1.5)
+    with pytest.raises(ValueError, match="garment_faces"):
+        laplacian_weights(garment, faces + garment.shape[0], body, w)
