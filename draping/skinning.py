@@ -36,8 +36,16 @@ import scipy.sparse as sp
 import torch
 from scipy.spatial import cKDTree
 
-from polygeo.checks import as_tensor, check_choice, check_finite, check_int, check_positive
-from polygeo.checks import check_faces, check_shape, is_numpy_like
+from polygeo.checks import (
+    as_tensor,
+    check_choice,
+    check_faces,
+    check_finite,
+    check_int,
+    check_positive,
+    check_shape,
+    is_numpy_like,
+)
 
 __all__ = [
     "SKINNING_METHODS",

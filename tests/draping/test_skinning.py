@@ -109,7 +109,8 @@ def test_sparse_body_weights_equal_dense():
     dense = dense_body_weights((idx, val), 100, n_bones=12)
     assert dense.shape == (100, 12)
     garment = rng.normal(size=(30, 3))
-    np.testing.assert_allclose(rbf_weights(garment, body, (idx, val)), rbf_weights(garment, body, dense))
+    sparse_out = rbf_weights(garment, body, (idx, val))
+    np.testing.assert_allclose(sparse_out, rbf_weights(garment, body, dense))
 
 
 def test_torch_in_torch_out():
