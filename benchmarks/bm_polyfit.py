@@ -49,15 +49,10 @@ from tqdm.auto import tqdm  # noqa: E402
 
 import polygeo.synthetic as syn  # noqa: E402
 from polygeo import jets  # noqa: E402
+from polygeo.canonical import canonicalize, height_residual, optimize_rotations  # noqa: E402
 from polygeo.partition import default_n_patches, mesh_area, partition_mesh  # noqa: E402
 from polygeo.patches import PatchSet, chamfer_distance  # noqa: E402
-from polygeo.stn import (  # noqa: E402
-    canonicalize,
-    height_residual,
-    load_pretrained,
-    optimize_rotations,
-    stn_rotations,
-)
+from polygeo.stn import load_pretrained, stn_rotations  # noqa: E402
 
 ORIENTS = ("pca", "stn", "optimize")
 HELD_OUT_SEED = 10**6 + 7

@@ -12,7 +12,9 @@ Sub-modules (imported on first access, so that ``import polygeo`` stays cheap):
 ``runs``        atomic writes, safe checkpoints, resume by settings fingerprint, logs, progress
 ``partition``   ACVD-like partition of a surface into patches
 ``patches``     PatchSet: oriented n-jet patches (PolyFit)
-``stn``         rigid spatial transformer refining patch orientations
+``canonical``   PCA canonical frames of patches, jet height residual, test-time refinement
+``stn``         rigid spatial transformer refining patch orientations (network, weights)
+``stn_train``   training of the STN (resumable, checkpointed)
 ``render``      differentiable soft rasterizer for CPU
 ``synthetic``   analytic surfaces and synthetic patch families
 """
@@ -53,7 +55,9 @@ _SUBMODULES = (
     "runs",
     "partition",
     "patches",
+    "canonical",
     "stn",
+    "stn_train",
     "render",
     "synthetic",
 )

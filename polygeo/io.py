@@ -15,12 +15,13 @@ arrays become attributes).
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from .runs import atomic_write
 
 __all__ = ["PointData", "read_points", "read_mesh", "write_ply", "write_npz", "SUFFIXES"]
 
@@ -257,19 +258,6 @@ def read_mesh(path: str | os.PathLike) -> PointData:
     return data
 
 
-def _atomic_write(path: Path, write: Any) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            write(fh)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def _np(x: Any, name: str) -> np.ndarray:
     if hasattr(x, "detach"):
         x = x.detach().cpu().numpy()
@@ -375,7 +363,7 @@ def write_ply(
     header.append("end_header")
     blob = ("\n".join(header) + "\n").encode("ascii") + rec.tobytes() + face_block
     out = Path(os.fspath(path))
-    _atomic_write(out, lambda fh: fh.write(blob))
+    atomic_write(out, lambda fh: fh.write(blob))
     return out
 
 
@@ -405,5 +393,5 @@ def write_npz(path: str | os.PathLike, **arrays: Any) -> Path:
         raise ValueError("write_npz: expected at least one array")
     data = {k: _np(v, k) for k, v in arrays.items()}
     out = Path(os.fspath(path))
-    _atomic_write(out, lambda fh: np.savez(fh, **data))
+    atomic_write(out, lambda fh: np.savez(fh, **data))
     return out

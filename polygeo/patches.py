@@ -943,7 +943,7 @@ class PatchSet:
     def _fit_partition(
         cls, part, *, v, f, nrm, ratio, order, orient, tol, max_order, stn_model, optimize_steps
     ) -> PatchSet:
-        from . import stn
+        from . import canonical, stn
 
         lab_np = np.array(part.labels, np.int64)
         labels = torch.from_numpy(lab_np)
@@ -966,19 +966,19 @@ class PatchSet:
             pf = v[f]
             cr = torch.linalg.cross(pf[:, 1] - pf[:, 0], pf[:, 2] - pf[:, 0])
             ref = torch.zeros(K, 3, dtype=torch.float64).index_add_(0, labels[f[:, 0]], cr)
-        can = stn._canonicalize(pts, mask, ref)
+        can = canonical.canonicalize(pts, mask, reference_normal=ref)
         local, ori = can.local, can.orientation
         res_order = 4 if isinstance(order, str) else int(order)
         if orient == "stn":
             Q = stn.stn_rotations(local, mask, stn_model)
             # keep the network's frame only where it lowers the residual (never worse than PCA)
             with torch.no_grad():
-                r_pca, _ = stn.height_residual(local, mask, None, res_order)
-                r_stn, _ = stn.height_residual(local, mask, Q, res_order)
+                r_pca, _ = canonical.height_residual(local, mask, None, res_order)
+                r_stn, _ = canonical.height_residual(local, mask, Q, res_order)
             eye = torch.eye(3, dtype=Q.dtype).expand_as(Q)
             Q = torch.where((r_stn < r_pca)[:, None, None], Q, eye)
         elif orient == "optimize":
-            Q = stn.optimize_rotations(local, mask, res_order, steps=optimize_steps).rotation
+            Q = canonical.optimize_rotations(local, mask, res_order, steps=optimize_steps).rotation
         else:
             Q = None
         R = ori.R

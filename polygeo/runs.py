@@ -17,6 +17,8 @@
 * :class:`JsonlLog`: one JSON record per line, flushed at each record; its reader ignores a
   torn last line (a process killed in the middle of a write).
 * :func:`progress`: a tqdm bar that can be quieted.
+
+torch is imported by the checkpoint functions only, so that the file helpers stay light.
 """
 
 from __future__ import annotations
@@ -37,7 +39,6 @@ from pathlib import Path
 from typing import IO, Any, NamedTuple
 
 import numpy as np
-import torch
 
 __all__ = [
     "CheckpointError",
@@ -188,6 +189,8 @@ _SCALARS = (bool, int, float, str, type(None))
 
 def _pack(x: Any, path: list, numpy_paths: list, in_tuple: bool = False) -> Any:
     """Copy of the tree with NumPy arrays as tensors and NumPy scalars as Python scalars."""
+    import torch
+
     where = "tensors" + "".join(f"[{k!r}]" for k in path)
     if isinstance(x, torch.Tensor):
         return x.detach().cpu()
@@ -259,12 +262,16 @@ def save_checkpoint(
         meta_json = json.dumps(dict(meta or {}))
     except (TypeError, ValueError) as exc:
         raise TypeError(f"meta: expected JSON-able metadata ({exc})") from exc
+    import torch
+
     header = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "numpy": numpy_paths}
     blob = {"header": json.dumps(header), "meta": meta_json, "tensors": tree}
     return atomic_write(path, lambda fh: torch.save(blob, fh))
 
 
 def _check_plain(x: Any, where: str) -> None:
+    import torch
+
     if isinstance(x, torch.Tensor) or isinstance(x, _SCALARS):
         return
     if isinstance(x, dict):
@@ -316,6 +323,8 @@ def load_checkpoint(path: str | os.PathLike) -> Checkpoint:
         containers, is truncated or not a checkpoint, is a checkpoint of another format
         version, or was written by an older polygeo (a bare ``torch.save`` of a dict).
     """
+    import torch
+
     p = Path(os.fspath(path))
     if not p.is_file():
         raise FileNotFoundError(f"path: no checkpoint at {str(p)!r}")

@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from polygeo.stn import TrainConfig
+    from polygeo.stn_train import TrainConfig
 
     d = TrainConfig()
     p = sub.add_parser(
@@ -45,7 +44,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from polygeo.stn import TrainConfig, save_weights, train_stn
+    from polygeo.runs import atomic_write_json
+    from polygeo.stn import save_weights
+    from polygeo.stn_train import TrainConfig, train_stn
 
     cfg = TrainConfig(
         steps=args.steps,
@@ -84,5 +85,5 @@ def _run(args: argparse.Namespace) -> int:
         f"stn {best['stn']:.5f} (ratio {best['ratio']:.3f}); {len(hist['loss'])} steps, "
         f"{hist['seconds']:.0f} s wall, {hist['cpu_seconds']:.0f} s CPU; wrote {out}"
     )
-    Path(out).with_suffix(".json").write_text(json.dumps(meta, indent=1))
+    atomic_write_json(Path(out).with_suffix(".json"), meta)
     return 0

@@ -1,22 +1,22 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
 
 import polygeo.stn as polygeo_stn
 import polygeo.synthetic as syn
+from polygeo.canonical import canonicalize, height_residual, optimize_rotations
 from polygeo.frames import axis_angle_to_matrix, quaternion_to_matrix
+from polygeo.runs import CheckpointError, SettingsChangedError, fingerprint, load_checkpoint
 from polygeo.stn import (
     PatchSTN,
-    TrainConfig,
-    canonicalize,
-    height_residual,
     load_pretrained,
-    optimize_rotations,
     pretrained_path,
     save_weights,
     stn_rotations,
-    train_stn,
 )
+from polygeo.stn_train import CHECKPOINT_FILE, TrainConfig, train_stn
 from polygeo.synthetic import _family_height_grad, _family_params, _grid_faces
 
 # Seeds 10**6 + i are never used by `polygeo train-stn` (batches use (seed, step) with
@@ -268,3 +268,81 @@ def test_early_stopping_returns_best_and_stops(tmp_path):
     assert hist["stopped_at"] == 6 and len(hist["loss"]) == 6
     assert hist["best"]["step"] == 2
     assert hist["cpu_seconds"] > 0
+
+
+class _Payload:
+    """Unpickling this object writes a marker file (what a malicious file could do)."""
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.write_text, (Path(self.marker), "pwned"))
+
+
+def _tiny_config(**kw):
+    return TrainConfig(**{
+        "steps": 2, "batch_size": 4, "n_points": 16, "mesh_share": 0.0, "widths": (8,),
+        "head": (4,), "n_val": 4, "n_train": 8, "eval_every": 1, "checkpoint_every": 1,
+        "threads": 1, "patience": 0, **kw,
+    })
+
+
+def test_old_and_pickled_training_checkpoints_are_refused(tmp_path):
+    cfg = _tiny_config()
+    net = PatchSTN((8,), (4,))
+    # a checkpoint of the layout written before polygeo.runs (a pickle of plain data)
+    old = tmp_path / "old"
+    old.mkdir()
+    torch.save({"state_dict": net.state_dict(), "step": 1, "history": {"config": {}}},
+               old / CHECKPOINT_FILE)
+    with pytest.raises(CheckpointError, match="older polygeo.*resume=False"):
+        train_stn(cfg, checkpoint_dir=old, progress=False)
+    # one carrying a pickled object: refused, and nothing runs
+    evil = tmp_path / "evil"
+    evil.mkdir()
+    marker = tmp_path / "marker"
+    torch.save({"state_dict": net.state_dict(), "x": _Payload(str(marker))},
+               evil / CHECKPOINT_FILE)
+    with pytest.raises(CheckpointError, match="pickled"):
+        train_stn(cfg, checkpoint_dir=evil, progress=False)
+    assert not marker.exists()
+    # resume=False starts afresh over either
+    _, hist = train_stn(cfg, checkpoint_dir=old, resume=False, progress=False)
+    assert len(hist["loss"]) == 2
+    _, meta = load_checkpoint(old / CHECKPOINT_FILE)
+    assert meta["step"] == 2 and meta["fingerprint"] == fingerprint(cfg)
+
+
+def test_weights_files_new_legacy_and_pickled(tmp_path):
+    net = _perturbed_net(3)
+    x = torch.randn(3, 12, 3)
+    p = save_weights(net, tmp_path / "w.pt", meta={"note": "x"})
+    assert load_checkpoint(p).meta == {"config": net.config(), "meta": {"note": "x"}}
+    torch.testing.assert_close(load_pretrained(p)(x), net(x), rtol=0, atol=0)
+    # the first layout (the shipped file's): a plain dict, read with weights_only=True
+    sd = {k: v.detach().clone() for k, v in net.state_dict().items()}
+    torch.save({"config": net.config(), "state_dict": sd, "meta": {}}, tmp_path / "legacy.pt")
+    torch.testing.assert_close(load_pretrained(tmp_path / "legacy.pt")(x), net(x), rtol=0,
+                               atol=0)
+    marker = tmp_path / "marker"
+    torch.save({"config": net.config(), "state_dict": sd, "meta": _Payload(str(marker))},
+               tmp_path / "evil.pt")
+    with pytest.raises(ValueError, match="STN weights"):
+        load_pretrained(tmp_path / "evil.pt")
+    assert not marker.exists()
+    # a training checkpoint holds weights too
+    cfg = _tiny_config(widths=(8, 16), head=(8,))
+    trained, _ = train_stn(cfg, checkpoint_dir=tmp_path / "run", progress=False)
+    last = load_pretrained(tmp_path / "run" / CHECKPOINT_FILE)
+    assert last.config() == trained.config()
+
+
+def test_resume_after_settings_change_is_refused_with_a_message(tmp_path):
+    cfg = _tiny_config()
+    train_stn(cfg, checkpoint_dir=tmp_path, progress=False)
+    with pytest.raises(SettingsChangedError, match="another configuration"):
+        train_stn(_tiny_config(seed=1), checkpoint_dir=tmp_path, progress=False)
+    # a finished run resumes to the same result without further steps
+    net_a, hist_a = train_stn(cfg, checkpoint_dir=tmp_path, progress=False)
+    assert len(hist_a["loss"]) == 2
