@@ -23,7 +23,17 @@ import numpy as np
 
 from .runs import atomic_write
 
-__all__ = ["PointData", "read_points", "read_mesh", "write_ply", "write_npz", "SUFFIXES"]
+__all__ = [
+    "PointData",
+    "TexturedMesh",
+    "read_points",
+    "read_mesh",
+    "read_textured_obj",
+    "write_ply",
+    "write_npz",
+    "write_textured_obj",
+    "SUFFIXES",
+]
 
 #: File suffixes :func:`read_points` understands.
 SUFFIXES = (".ply", ".obj", ".off", ".xyz", ".txt", ".npy", ".npz")
@@ -394,4 +404,279 @@ def write_npz(path: str | os.PathLike, **arrays: Any) -> Path:
     data = {k: _np(v, k) for k, v in arrays.items()}
     out = Path(os.fspath(path))
     atomic_write(out, lambda fh: np.savez(fh, **data))
+    return out
+
+
+# ---------------------------------------------------------------------- textured OBJ
+
+
+@dataclass(frozen=True)
+class TexturedMesh:
+    """A triangle mesh with its appearance, as a Wavefront OBJ holds it.
+
+    Attributes
+    ----------
+    vertices : (V, 3) float64
+        Coordinates, in the file's unit and vertex order.
+    faces : (F, 3) int64
+        Triangles, 0-based (polygons are fan-triangulated).
+    uvs : (V, 2) or (F, 3, 2) float64 or None
+        Texture coordinates (OBJ convention: ``v = 0`` at the *bottom* row of the image):
+        one per vertex when every vertex has one ``vt`` wherever it is used, else one per
+        face corner (a vertex on a UV seam has a different ``vt`` in the faces on either
+        side; the geometry stays one vertex). None when a face has no ``vt``.
+    texture : (Ht, Wt, 3) float32 or None
+        RGB in ``[0, 1]``, row 0 at the top of the image: the ``map_Kd`` image of the
+        material library (``mtllib``), None without one.
+    colors : (V, 3) float32 or None
+        Vertex colours in ``[0, 1]`` (``v x y z r g b`` lines), None unless every vertex has
+        one.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    uvs: np.ndarray | None = None
+    texture: np.ndarray | None = None
+    colors: np.ndarray | None = None
+
+
+def _obj_texture_path(mtl: Path) -> Path | None:
+    """The ``map_Kd`` image named by a material library (its first one), or None."""
+    if not mtl.is_file():
+        raise ValueError(f"{mtl}: material library referenced by the OBJ does not exist")
+    for line in mtl.read_text().splitlines():
+        parts = line.strip().split(maxsplit=1)
+        if len(parts) == 2 and parts[0] == "map_Kd":
+            words = parts[1].split()
+            name = words[-1] if words[0].startswith("-") else parts[1].strip()  # -s, -o, ...
+            tex = mtl.parent / name
+            if not tex.is_file():
+                raise ValueError(f"{mtl}: texture {name!r} (map_Kd) does not exist")
+            return tex
+    return None
+
+
+def _read_texture(path: Path) -> np.ndarray:
+    """An 8 or 16 bit image as ``(H, W, 3)`` float32 RGB in ``[0, 1]``."""
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"{path}: cannot decode the texture image")
+    if img.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"{path}: expected an 8 or 16 bit texture, got dtype {img.dtype}")
+    img = img.astype(np.float32) / (65535.0 if img.dtype == np.uint16 else 255.0)
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=2)
+    return np.ascontiguousarray(img[..., 2::-1] if img.shape[2] >= 3 else img)
+
+
+def _parse_obj(p: Path) -> dict[str, Any]:
+    """The records of an OBJ file: v, colours, vt, faces and their vt indices, mtllib."""
+    out: dict[str, Any] = {"v": [], "rgb": [], "vt": [], "f": [], "fvt": [], "mtllib": None}
+    for lineno, line in enumerate(p.read_text().splitlines(), 1):
+        parts = line.split()
+        if not parts or parts[0].startswith("#"):
+            continue
+        try:
+            if parts[0] == "v":
+                out["v"].append([float(x) for x in parts[1:4]])
+                if len(parts) >= 7:
+                    out["rgb"].append([float(x) for x in parts[4:7]])
+            elif parts[0] == "vt":
+                out["vt"].append([float(x) for x in parts[1:3]])
+            elif parts[0] == "f":
+                idx = [c.split("/") for c in parts[1:]]
+                if len(idx) < 3:
+                    raise ValueError("a face needs at least 3 vertices")
+                nv, nt = len(out["v"]), len(out["vt"])
+                vi = [int(c[0]) for c in idx]
+                ti = [int(c[1]) if len(c) > 1 and c[1] else 0 for c in idx]
+                vi = [i - 1 if i > 0 else nv + i for i in vi]  # negative: relative
+                ti = [i - 1 if i > 0 else (nt + i if i < 0 else -1) for i in ti]
+                for k in range(1, len(vi) - 1):  # fan triangulation of polygons
+                    out["f"].append([vi[0], vi[k], vi[k + 1]])
+                    out["fvt"].append([ti[0], ti[k], ti[k + 1]])
+            elif parts[0] == "mtllib":
+                out["mtllib"] = line.strip().split(maxsplit=1)[1]
+        except (ValueError, IndexError) as exc:
+            raise ValueError(f"{p}:{lineno}: cannot parse {line.strip()!r} ({exc})") from exc
+    return out
+
+
+def _obj_uvs(p: Path, f: np.ndarray, fvt: np.ndarray, vt: np.ndarray, n: int) -> np.ndarray:
+    """Per-vertex ``(V, 2)`` uvs when they are consistent, else per face corner ``(F, 3, 2)``."""
+    if fvt.size and fvt.max() >= len(vt):
+        raise ValueError(f"{p}: a face refers to vt {fvt.max() + 1} of {len(vt)}")
+    corner = vt[fvt]  # (F, 3, 2)
+    per_vertex = np.full((n, 2), np.nan)
+    per_vertex[f.reshape(-1)] = corner.reshape(-1, 2)
+    if np.isnan(per_vertex).any() or not np.allclose(per_vertex[f], corner, atol=1e-9):
+        return corner  # a seam, or a vertex in no face: per face corner
+    return per_vertex
+
+
+def read_textured_obj(path: str | os.PathLike, *, load_texture: bool = True) -> TexturedMesh:
+    """Read a Wavefront OBJ with its texture coordinates, texture image and vertex colours.
+
+    Faces may be ``v``, ``v/vt``, ``v/vt/vn`` or ``v//vn`` (normals are ignored), with
+    negative (relative) indices; polygons are fan-triangulated. The texture is the first
+    ``map_Kd`` of the ``mtllib`` material library (8 or 16 bit image).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The ``.obj`` file.
+    load_texture : bool
+        Decode the texture image (else ``texture`` is None; the library is still checked).
+
+    Returns
+    -------
+    TexturedMesh
+
+    Raises
+    ------
+    FileNotFoundError
+        If the file does not exist.
+    ValueError
+        A line that cannot be parsed (the message names the line), no vertices or faces,
+        face or ``vt`` indices out of range, a material library or texture that does not
+        exist, or a texture while some face has no ``vt``.
+    """
+    p = Path(os.fspath(path))
+    if not p.is_file():
+        raise FileNotFoundError(f"{p}: no such file")
+    rec = _parse_obj(p)
+    v = np.asarray(rec["v"], dtype=np.float64).reshape(-1, 3)
+    f = np.asarray(rec["f"], dtype=np.int64).reshape(-1, 3)
+    if len(v) == 0 or len(f) == 0:
+        raise ValueError(f"{p}: expected a non-empty (V, 3) vertex array and (F, 3) face "
+                         f"array, got {len(v)} vertices and {len(f)} faces")
+    if f.min() < 0 or f.max() >= len(v):
+        raise ValueError(f"{p}: face indices must lie in [1, {len(v)}], got "
+                         f"[{f.min() + 1}, {f.max() + 1}]")
+    colors = None
+    if rec["rgb"] and len(rec["rgb"]) == len(v):
+        colors = np.clip(np.asarray(rec["rgb"], dtype=np.float32), 0.0, 1.0)
+    tex_path = _obj_texture_path(p.parent / rec["mtllib"]) if rec["mtllib"] else None
+    fvt = np.asarray(rec["fvt"], dtype=np.int64).reshape(-1, 3)
+    uvs = None
+    if rec["vt"] and not (fvt < 0).any():
+        uvs = _obj_uvs(p, f, fvt, np.asarray(rec["vt"], dtype=np.float64), len(v))
+    elif tex_path is not None:
+        raise ValueError(f"{p}: the material has a texture but faces lack 'vt' indices")
+    texture = _read_texture(tex_path) if tex_path is not None and load_texture else None
+    return TexturedMesh(vertices=v, faces=f, uvs=uvs, texture=texture, colors=colors)
+
+
+def _to_uint8_image(img: Any) -> np.ndarray:
+    a = _np(img, "texture")
+    if a.ndim != 3 or a.shape[2] != 3 or min(a.shape[:2]) < 1:
+        raise ValueError(f"texture: expected an (Ht, Wt, 3) image, got shape {a.shape}")
+    if a.dtype == np.uint8:
+        return a
+    if a.dtype.kind != "f":
+        raise TypeError(f"texture: expected uint8 or float in [0, 1], got dtype {a.dtype}")
+    if not np.isfinite(a).all():
+        raise ValueError("texture: non-finite pixel values")
+    return np.clip(np.rint(a * 255.0), 0, 255).astype(np.uint8)
+
+
+def write_textured_obj(
+    path: str | os.PathLike,
+    vertices: Any,
+    faces: Any,
+    *,
+    uvs: Any = None,
+    texture: Any = None,
+    colors: Any = None,
+    texture_name: str = "texture.png",
+) -> Path:
+    """Write a mesh as a Wavefront OBJ, with its material library and texture, atomically.
+
+    With a texture, ``<stem>.mtl`` (one material whose ``map_Kd`` is ``texture_name``) and
+    the PNG ``texture_name`` are written beside the OBJ; :func:`read_textured_obj` reads the
+    three back (coordinates to 9 significant digits).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The ``.obj`` file; its folder is created.
+    vertices : (V, 3) float
+        Coordinates.
+    faces : (F, 3) int
+        Triangles, 0-based.
+    uvs : (V, 2) or (F, 3, 2) float, optional
+        Texture coordinates (OBJ convention, ``v`` up): per vertex, or per face corner for a
+        mesh with UV seams (written as one ``vt`` per corner).
+    texture : (Ht, Wt, 3) uint8 or float in [0, 1], optional
+        RGB image, row 0 at the top; needs ``uvs``.
+    colors : (V, 3) float in [0, 1], optional
+        Vertex colours (``v x y z r g b``), written when there is no texture.
+    texture_name : str
+        File name of the texture image (PNG), relative to the OBJ's folder.
+
+    Returns
+    -------
+    pathlib.Path
+        The written OBJ path.
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, face indices out of range, a texture without ``uvs``, or non-finite
+        values.
+    TypeError
+        Non-numeric arrays.
+    """
+    out = Path(os.fspath(path))
+    v = _np(vertices, "vertices").astype(np.float64)
+    if v.ndim != 2 or v.shape[1] != 3 or not np.isfinite(v).all():
+        raise ValueError(f"vertices: expected a finite (V, 3) array, got shape {v.shape}")
+    f = _np(faces, "faces")
+    if f.ndim != 2 or f.shape[1] != 3 or f.dtype.kind not in "iu":
+        raise ValueError(f"faces: expected an (F, 3) integer array, got {f.shape} {f.dtype}")
+    if f.size and (f.min() < 0 or f.max() >= len(v)):
+        raise ValueError(f"faces: expected indices in [0, {len(v) - 1}], got "
+                         f"[{f.min()}, {f.max()}]")
+    lines = ["# written by polygeo"]
+    if texture is not None:
+        if uvs is None:
+            raise ValueError("uvs: a texture needs texture coordinates, got None")
+        uv = _np(uvs, "uvs").astype(np.float64)
+        if uv.shape not in ((len(v), 2), (len(f), 3, 2)) or not np.isfinite(uv).all():
+            raise ValueError(f"uvs: expected finite ({len(v)}, 2) or ({len(f)}, 3, 2), got "
+                             f"shape {uv.shape}")
+        img = _to_uint8_image(texture)
+        mtl = out.with_suffix(".mtl")
+        lines.append(f"mtllib {mtl.name}")
+    rgb = None if colors is None or texture is not None else _np(colors, "colors")
+    if rgb is not None and rgb.shape != (len(v), 3):
+        raise ValueError(f"colors: expected shape ({len(v)}, 3), got {rgb.shape}")
+    for i, p in enumerate(v):
+        xyz = f"v {p[0]:.9g} {p[1]:.9g} {p[2]:.9g}"
+        lines.append(xyz if rgb is None else
+                     f"{xyz} {rgb[i, 0]:.6g} {rgb[i, 1]:.6g} {rgb[i, 2]:.6g}")
+    if texture is not None:
+        lines += [f"vt {a:.9g} {b:.9g}" for a, b in uv.reshape(-1, 2)]
+        lines.append("usemtl material")
+        if uv.ndim == 2:  # per vertex: vt index = vertex index
+            lines += [f"f {a + 1}/{a + 1} {b + 1}/{b + 1} {c + 1}/{c + 1}" for a, b, c in f]
+        else:  # per face corner: vt 3i + k is corner k of face i
+            lines += [f"f {a + 1}/{3 * i + 1} {b + 1}/{3 * i + 2} {c + 1}/{3 * i + 3}"
+                      for i, (a, b, c) in enumerate(f)]
+    else:
+        lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in f]
+    if texture is not None:
+        import cv2
+
+        ok, png = cv2.imencode(".png", cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+        if not ok:  # pragma: no cover - cv2 failure
+            raise ValueError(f"texture: could not encode {texture_name} as PNG")
+        atomic_write(out.parent / texture_name, lambda fh: fh.write(png.tobytes()))
+        text = ("newmtl material\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\n"
+                f"map_Kd {texture_name}\n")
+        atomic_write(mtl, lambda fh: fh.write(text.encode()))
+    blob = ("\n".join(lines) + "\n").encode()
+    atomic_write(out, lambda fh: fh.write(blob))
     return out

@@ -25,7 +25,9 @@ from .checks import (
     as_tensor,
     check_choice,
     check_faces,
+    check_finite,
     check_int,
+    check_positive,
     check_shape,
     is_numpy_like,
     to_like,
@@ -42,6 +44,7 @@ __all__ = [
     "edges",
     "edge_faces",
     "edge_lengths",
+    "edge_length_energy",
     "face_areas",
     "face_normals",
     "vertex_normals",
@@ -669,6 +672,53 @@ def edge_lengths(vertices: Any, edge_index: Any) -> Any:
     d = v[..., e[:, 1], :] - v[..., e[:, 0], :]
     length, _ = _safe_norm(d, _eps(v))
     return to_like(length, numpy_in)
+
+
+def edge_length_energy(vertices: Any, edge_index: Any, rest_lengths: Any,
+                       scale: float = 1.0) -> Any:
+    """Inextensibility energy: squared changes of edge lengths, summed, differentiable.
+
+    ``E = sum_e (l_e / scale - r_e / scale)^2`` with ``l_e`` the edge lengths of
+    ``vertices`` and ``r_e`` their rest lengths. ``scale`` (a length of the surface, e.g. its
+    radius) makes the energy independent of the unit of the input; for a uniform stretch
+    ``l = (1 + eps) r`` it is ``eps^2 sum_e (r_e / scale)^2``.
+
+    Parameters
+    ----------
+    vertices : (..., N, 3) float
+        Vertex coordinates (any length unit), a leading batch sharing the edges.
+    edge_index : (E, 2) int
+        Vertex pairs (e.g. from :func:`edges`).
+    rest_lengths : (E,) float
+        Rest length of each edge, >= 0, same unit as ``vertices``; compared in the dtype of
+        ``vertices`` after division by ``scale`` in its own dtype (keep it float64).
+    scale : float
+        Normalising length (> 0), same unit as ``vertices``.
+
+    Returns
+    -------
+    (...,) float
+        The energy, dimensionless (lengths in units of ``scale``); NumPy when ``vertices``
+        is NumPy. The gradient of a zero-length edge is zero (not NaN).
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, out-of-range indices, a ``rest_lengths`` that is not ``(E,)``, finite and
+        >= 0, or a ``scale`` that is not finite and > 0.
+    TypeError
+        Non-numeric input.
+    """
+    v, numpy_in = _verts(vertices)
+    scale = check_positive(scale, "scale")
+    lengths = edge_lengths(v, edge_index) / scale  # (..., E)
+    r = as_tensor(rest_lengths, "rest_lengths")
+    check_shape(r, "rest_lengths", (lengths.shape[-1],))
+    check_finite(r, "rest_lengths")
+    if r.numel() and float(r.min()) < 0:
+        raise ValueError(f"rest_lengths: expected values >= 0, got {float(r.min())}")
+    energy = (lengths - (r / scale).to(lengths.device, lengths.dtype)).pow(2).sum(-1)
+    return to_like(energy, numpy_in)
 
 
 def _face_cross(v: torch.Tensor, f: torch.Tensor) -> torch.Tensor:

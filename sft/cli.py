@@ -6,7 +6,6 @@ import argparse
 import sys
 import tempfile
 import time
-from dataclasses import fields
 from pathlib import Path
 
 __all__ = ["register", "demo", "run", "SAMPLE", "DEMO_SETTINGS"]
@@ -15,7 +14,7 @@ __all__ = ["register", "demo", "run", "SAMPLE", "DEMO_SETTINGS"]
 SAMPLE = Path(__file__).resolve().parent / "samples" / "bend"
 
 #: Settings of the demo (a reduced budget so that it runs in about a minute; see ``demo``).
-DEMO_SETTINGS = {"patience": 20, "frame_period": 60, "init": "extrapolate", "overlays": 2}
+DEMO_SETTINGS = {"patience": 20, "max_iterations": 60, "init": "extrapolate", "overlays": 2}
 
 
 def _set_threads(n: int | None) -> None:
@@ -32,41 +31,123 @@ def _set_threads(n: int | None) -> None:
         pass
 
 
-def _add_settings_args(p: argparse.ArgumentParser) -> None:
-    from .optimize import SfTSettings
+#: Meaning of every option of ``polygeo sft`` (a field of :class:`sft.settings.SfTSettings`;
+#: the defaults are added from the settings themselves).
+OPTION_HELP = {
+    # model
+    "method": "'polysft' (jet patches) or 'vertex' (per-vertex baseline)",
+    "order": "jet order 1..6, or 'auto' (start at 2, raise on slow progress up to --max-order)",
+    "max_order": "highest jet order of --order auto",
+    "auto_gain": "relative loss decrease over --patience iterations below which --order auto "
+                 "raises the order",
+    "patches": "jet patches, or 'auto': the fewest (1, 2, 3, ...) whose every triangle is "
+               "within --max-tilt of its patch's axis (1 for a sheet)",
+    "max_tilt": "degrees in (0, 90): steepest triangle a patch may hold with --patches auto",
+    "patch_rigid": "true/false: a rigid motion per patch, tied by the boundary term",
+    "refit_tilt": "degrees: when a patch's jet gets steeper than this (and has steepened by "
+                  "more than --refit-tilt minus --refit-max-tilt since it was fitted), that "
+                  "frame's surface is re-partitioned into new patches; 0: never",
+    "refit_max_tilt": "degrees in (0, 90): steepest jet slope of a new patch after a refit",
+    "refit_max_patches": "most patches of a re-partition",
+    "seed": "seed of the patch partition",
+    # optimiser
+    "window": "sliding-window size W (frames optimised together)",
+    "patience": "iterations without improvement that end a window",
+    "max_iterations": "most iterations per window (the thesis' frame period: 500)",
+    "min_improvement": "relative decrease of the loss that counts as an improvement",
+    "lr_uv": "Adam learning rate of the uv displacements (normalised units)",
+    "lr_alpha": "Adam learning rate of the jet-coefficient offsets",
+    "lr_rigid": "Adam learning rate of the rigid motion (radians, normalised units; the "
+                "thesis: 1e-4)",
+    "lr_vertex": "Adam learning rate of the baseline's per-vertex offsets",
+    "lr_patch": "Adam learning rate of the per-patch rigid motions",
+    "init": "'extrapolate' (constant velocity from the two previous frames) or 'previous' "
+            "(the thesis)",
+    "carry_adam": "true/false: keep each frame's Adam moments across windows",
+    "keep_best": "true/false: a window returns its lowest-loss iterate, not its last",
+    "warmup": "Adam steps over which a fresh state's learning rates ramp up from 0",
+    "freeze": "comma-separated parameters kept fixed, e.g. d_alpha,d_uv",
+    "dtype": "'float32' or 'float64': dtype of the optimisation",
+    # losses
+    "rgb_weight": "weight of the colour term",
+    "silhouette_weight": "weight of the silhouette term (needs masks)",
+    "inextensibility_weight": "weight of edge-length inextensibility, eq. (47) (the thesis: "
+                              "0.1)",
+    "consistency_weight": "weight of temporal consistency, eq. (48): the pull of each frame "
+                          "towards the previous one (the thesis: 0.05 with "
+                          "--acceleration-weight 0 --init previous)",
+    "acceleration_weight": "weight of the constant-velocity prior (squared second differences "
+                           "of the parameters over the window)",
+    "boundary_weight": "weight of boundary consistency between patches, eq. (51): positions",
+    "boundary_normal_weight": "weight of boundary consistency between patches: normals",
+    "rgb_kind": "'l1' or 'l2' colour term",
+    "silhouette_kind": "'l2', 'l1' or 'iou' silhouette term",
+    "pyramid": "coarser image levels (2x2, 4x4, ... block means) added to the image terms",
+    # raster
+    "sigma": "soft rasterizer sharpness in pixels^2",
+    "gamma": "soft rasterizer depth temperature of the colour softmax",
+    "blur_threshold": "coverage below which a face is ignored at a pixel, in [0, 0.5)",
+    "tile_size": "screen tile side in pixels (speed only)",
+    "background": "comma-separated background colour (one value or one per channel)",
+    "background_depth": "normalised depth of the background term of the colour softmax",
+    "znear": "near plane (scene units): faces with a vertex closer are culled",
+    "zfar": "far plane (scene units) normalising depth",
+    "cull_backfaces": "true/false: cull faces turned away from the camera",
+    "min_area": "faces of projected area below this (pixels^2) are skipped",
+    # output
+    "checkpoint_every": "windows between checkpoints (0: none)",
+    "overlays": "frames that get a frame/render/error PNG",
+    "charts": "true/false: write the PNG charts at the end",
+    "quiet": "no progress bar",
+}
 
-    g = p.add_argument_group("optimisation settings (defaults: sft.optimize.SfTSettings)")
-    helps = {
-        "method": "'polysft' (jet patches) or 'vertex' (per-vertex baseline)",
-        "order": "jet order 1..6 or 'auto'",
-        "window": "sliding-window size W",
-        "patience": "iterations without improvement that end a window",
-        "frame_period": "most iterations per window",
-        "patches": "jet patches, or 'auto' (default): the fewest (1, 2, 3, ...) whose every "
-                   "triangle is within --max-tilt of its patch's axis (1 for a sheet)",
-        "max_tilt": "degrees, < 90: steepest triangle a patch may hold with --patches auto",
-        "refit_tilt": "degrees: when a patch's jet gets steeper than this (and has steepened "
-                      "by more than --refit-tilt minus --refit-max-tilt since it was fitted), "
-                      "that frame's surface is re-partitioned into new patches; 0: never",
-        "refit_max_tilt": "degrees, < 90: steepest jet slope of a new patch after a refit",
-        "patch_rigid": "true/false: a rigid motion per patch, tied by the boundary term",
-        "freeze": "comma-separated parameters kept fixed, e.g. d_alpha,d_uv",
-        "carry_adam": "true/false: keep Adam moments across windows",
-        "keep_best": "true/false: a window returns its lowest-loss iterate, not its last",
-        "warmup": "Adam steps over which a fresh state's learning rates ramp up from 0",
-        "k_tc": "weight of eq. (48), the pull of each frame towards the previous one "
-                "(default 0; the thesis: 0.05 with --k-acc 0 --init previous)",
-        "k_acc": "weight of the constant-velocity prior (squared second differences of the "
-                 "parameters over the window; default 0.05)",
-        "init": "'extrapolate' (default: constant velocity from the two previous frames) or "
-                "'previous' (the thesis)",
-    }
-    for f in fields(SfTSettings):
-        flag = "--" + f.name.replace("_", "-")
-        typ = {"int": int, "float": float, "bool": _bool,
-               "tuple[str, ...]": _names}.get(str(f.type), str)
-        g.add_argument(flag, dest=f.name, type=typ, default=None,
-                       help=helps.get(f.name, f"default {f.default!r}"))
+#: Settings the command line does not expose (the optimiser needs soft renders).
+_HIDDEN = ("hard",)
+
+
+def _int_or_auto(s: str) -> int | str:
+    """An integer or ``"auto"`` (``--order``, ``--patches``)."""
+    if s == "auto":
+        return s
+    try:
+        return int(s)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"expected an integer or 'auto', got {s!r}") from exc
+
+
+def _floats(s: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(x) for x in s.split(",") if x.strip())
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {s!r}") from exc
+
+
+def _parser_of(annotation: str):
+    return {"int": int, "float": float, "bool": _bool, "tuple[str, ...]": _names,
+            "int | str": _int_or_auto, "Sequence[float]": _floats}.get(annotation, str)
+
+
+def _add_settings_args(p: argparse.ArgumentParser) -> None:
+    from .settings import field_defaults, field_types, flat_fields
+
+    defaults, types = field_defaults(), field_types()
+    groups = {}
+    for name, group in flat_fields().items():
+        if name in _HIDDEN:
+            continue
+        if group not in groups:
+            groups[group] = p.add_argument_group(
+                f"{group} settings (sft.settings.SfTSettings.{group})")
+        flag = "--" + name.replace("_", "-")
+        default = defaults[name]
+        shown = ",".join(map(str, default)) if isinstance(default, list) else default
+        help_ = f"{OPTION_HELP[name]} (default: {shown if shown != '' else 'none'})"
+        if name == "quiet":
+            groups[group].add_argument(flag, dest=name, action="store_const", const=True,
+                                       default=None, help=help_)
+            continue
+        groups[group].add_argument(flag, dest=name, type=_parser_of(types[name]),
+                                   default=None, metavar=name.upper(), help=help_)
 
 
 def _bool(s: str) -> bool:
@@ -83,21 +164,15 @@ def _names(s: str) -> tuple[str, ...]:
 
 
 def _settings_from(args: argparse.Namespace, base: dict | None = None):
-    from .optimize import SfTSettings
+    """:class:`sft.settings.SfTSettings` from the options given (the rest: defaults)."""
+    from .settings import SfTSettings, flat_fields
 
     kw = dict(base or {})
-    for f in fields(SfTSettings):
-        v = getattr(args, f.name, None)
+    for name in flat_fields():
+        v = getattr(args, name, None)
         if v is not None:
-            kw[f.name] = v
-    for name in ("order", "patches"):
-        if name in kw and kw[name] != "auto":
-            try:
-                kw[name] = int(kw[name])
-            except ValueError as exc:
-                msg = f"--{name}: expected an integer or 'auto', got {kw[name]!r}"
-                raise ValueError(msg) from exc
-    return SfTSettings(**kw)
+            kw[name] = v
+    return SfTSettings.from_flat(**kw)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -116,7 +191,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-resume", action="store_true", help="ignore an existing checkpoint")
     p.add_argument("--threads", type=int, default=1,
                    help="CPU threads (default 1: fastest on a shared machine)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_settings_args(p)
     p.set_defaults(func=run)
 
@@ -153,18 +227,18 @@ def run(args: argparse.Namespace) -> int:
     settings = _settings_from(args)
     t0 = time.perf_counter()
     res = run_sft(args.sequence, args.out, settings, resume=not args.no_resume,
-                  progress=not args.quiet, max_frames=args.max_frames)
-    print(f"{settings.method} on {args.sequence}: {len(res.rows)} frames in "
+                  max_frames=args.max_frames)
+    print(f"{settings.model.method} on {args.sequence}: {len(res.rows)} frames in "
           f"{time.perf_counter() - t0:.1f} s -> {res.out_dir}")
     print(_HEADER)
-    _print_summary(settings.method, res.summary)
+    _print_summary(settings.model.method, res.summary)
     return 0
 
 
 def demo(args: argparse.Namespace) -> int:
     """Run PolySfT and the per-vertex baseline on the embedded sample; print a table.
 
-    The demo uses a reduced budget (``DEMO_SETTINGS``: patience 20, frame period 60) so that
+    The demo uses a reduced budget (``DEMO_SETTINGS``: patience 20, 60 iterations) so that
     both methods finish in about a minute on two CPU cores; ``polygeo sft`` uses the full
     settings.
     """
@@ -181,9 +255,8 @@ def demo(args: argparse.Namespace) -> int:
           f"outputs in {out}):")
     rows = []
     for method in ("polysft", "vertex"):
-        st = SfTSettings(method=method, **DEMO_SETTINGS)
-        res = run_sft(SAMPLE, Path(out) / f"sft_{method}", st, resume=False,
-                      progress=not quiet)
+        st = SfTSettings.from_flat(method=method, quiet=quiet, **DEMO_SETTINGS)
+        res = run_sft(SAMPLE, Path(out) / f"sft_{method}", st, resume=False)
         rows.append((method, res.summary))
     print(_HEADER)
     for name, s in rows:

@@ -44,7 +44,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from polygeo.io import write_ply
+from polygeo.io import read_textured_obj, write_ply, write_textured_obj
 
 __all__ = [
     "Template",
@@ -164,82 +164,11 @@ def _image_size(path: Path) -> tuple[int, int]:
         raise ValueError(f"{path}: not a readable image ({exc})") from exc
 
 
-def _parse_mtl_texture(mtl: Path) -> Path | None:
-    if not mtl.is_file():
-        raise ValueError(f"{mtl}: material library referenced by the template does not exist")
-    for line in mtl.read_text().splitlines():
-        parts = line.strip().split(maxsplit=1)
-        if len(parts) == 2 and parts[0] == "map_Kd":
-            tex = mtl.parent / parts[1].strip()
-            if not tex.is_file():
-                raise ValueError(f"{mtl}: texture {parts[1].strip()!r} (map_Kd) does not exist")
-            return tex
-    return None
-
-
 def _load_obj(path: Path) -> Template:
-    verts: list[list[float]] = []
-    vts: list[list[float]] = []
-    colors: list[list[float]] = []
-    faces: list[list[int]] = []
-    face_vt: list[list[int]] = []
-    mtllib: str | None = None
-    for lineno, line in enumerate(path.read_text().splitlines(), 1):
-        parts = line.split()
-        if not parts or parts[0].startswith("#"):
-            continue
-        try:
-            if parts[0] == "v":
-                verts.append([float(x) for x in parts[1:4]])
-                if len(parts) >= 7:
-                    colors.append([float(x) for x in parts[4:7]])
-            elif parts[0] == "vt":
-                vts.append([float(x) for x in parts[1:3]])
-            elif parts[0] == "f":
-                idx = [p.split("/") for p in parts[1:]]
-                if len(idx) < 3:
-                    raise ValueError("a face needs at least 3 vertices")
-                vi = [int(p[0]) for p in idx]
-                ti = [int(p[1]) if len(p) > 1 and p[1] else 0 for p in idx]
-                vi = [i - 1 if i > 0 else len(verts) + i for i in vi]
-                ti = [i - 1 if i > 0 else (len(vts) + i if i < 0 else -1) for i in ti]
-                for k in range(1, len(vi) - 1):  # fan triangulation of polygons
-                    faces.append([vi[0], vi[k], vi[k + 1]])
-                    face_vt.append([ti[0], ti[k], ti[k + 1]])
-            elif parts[0] == "mtllib":
-                mtllib = line.strip().split(maxsplit=1)[1]
-        except (ValueError, IndexError) as exc:
-            raise ValueError(f"{path}:{lineno}: cannot parse {line.strip()!r} ({exc})") from exc
-    v = np.asarray(verts, dtype=np.float64).reshape(-1, 3)
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    if len(v) == 0 or len(f) == 0:
-        raise ValueError(
-            f"{path}: expected a non-empty (V, 3) vertex array and (F, 3) face array, got "
-            f"{len(v)} vertices and {len(f)} faces"
-        )
-    uvs = texture = None
-    col = None
-    if colors and len(colors) == len(verts):
-        col = np.clip(np.asarray(colors, dtype=np.float32), 0.0, 1.0)
-    tex_path = _parse_mtl_texture(path.parent / mtllib) if mtllib else None
-    if tex_path is not None:
-        fvt = np.asarray(face_vt, dtype=np.int64).reshape(-1, 3)
-        if len(vts) == 0 or (fvt < 0).any():
-            raise ValueError(f"{path}: the material has a texture but faces lack 'vt' indices")
-        vt = np.asarray(vts, dtype=np.float64)
-        if fvt.max() >= len(vt):
-            raise ValueError(f"{path}: a face refers to vt {fvt.max() + 1} of {len(vt)}")
-        uvs = np.full((len(v), 2), np.nan)
-        if f.size and (f.min() < 0 or f.max() >= len(v)):
-            raise ValueError(f"{path}: face indices must lie in [1, {len(v)}]")
-        uvs[f.reshape(-1)] = vt[fvt.reshape(-1)]
-        corner = vt[fvt]  # (F, 3, 2)
-        if not np.allclose(uvs[f], corner, atol=1e-9):
-            uvs = corner  # UV seams: per face corner
-        elif np.isnan(uvs).any():
-            raise ValueError(f"{path}: {int(np.isnan(uvs[:, 0]).sum())} vertices are in no face")
-        texture = _read_image(tex_path, "texture")
-    return Template(verts=v, faces=f, uvs=uvs, texture=texture, colors=col)
+    m = read_textured_obj(path)
+    uvs = m.uvs if m.texture is not None else None
+    return Template(verts=m.vertices, faces=m.faces, uvs=uvs, texture=m.texture,
+                    colors=m.colors)
 
 
 def _load_ply_template(path: Path) -> Template:
@@ -605,30 +534,9 @@ def _to_uint8(img: np.ndarray, name: str) -> np.ndarray:
 
 
 def _write_obj(root: Path, t: Template) -> None:
-    lines = ["# polygeo SfT template", "mtllib template.mtl" if t.textured else ""]
-    for i, p in enumerate(t.verts):
-        if t.colors is not None and not t.textured:
-            c = t.colors[i]
-            lines.append(f"v {p[0]:.9g} {p[1]:.9g} {p[2]:.9g} {c[0]:.6g} {c[1]:.6g} {c[2]:.6g}")
-        else:
-            lines.append(f"v {p[0]:.9g} {p[1]:.9g} {p[2]:.9g}")
-    if t.textured:
-        lines += [f"vt {u:.9g} {v:.9g}" for u, v in t.uvs.reshape(-1, 2)]
-        lines.append("usemtl sheet")
-        if t.uvs.ndim == 2:  # per vertex: vt index = vertex index
-            lines += [f"f {a + 1}/{a + 1} {b + 1}/{b + 1} {c + 1}/{c + 1}"
-                      for a, b, c in t.faces]
-        else:  # per face corner: vt 3i + k is corner k of face i
-            lines += [f"f {a + 1}/{3 * i + 1} {b + 1}/{3 * i + 2} {c + 1}/{3 * i + 3}"
-                      for i, (a, b, c) in enumerate(t.faces)]
-        (root / "template.mtl").write_text(
-            "newmtl sheet\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\nmap_Kd texture.png\n"
-        )
-        tex = _to_uint8(t.texture, "template.texture")
-        cv2.imwrite(str(root / "texture.png"), cv2.cvtColor(tex, cv2.COLOR_RGB2BGR))
-    else:
-        lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in t.faces]
-    (root / "template.obj").write_text("\n".join(x for x in lines if x) + "\n")
+    """``template.obj`` (with ``template.mtl`` and ``texture.png`` when textured)."""
+    write_textured_obj(root / "template.obj", t.verts, t.faces, uvs=t.uvs, texture=t.texture,
+                       colors=None if t.textured else t.colors)
 
 
 class SequenceWriter:

@@ -4,14 +4,14 @@
   frames / masks, as in phi-SfT (Kairanda et al. 2022): an L1 colour loss over the image
   (the target composited over the renderer's background with its mask) and an L2 loss
   between the soft silhouette and the mask.
-- Mesh inextensibility (thesis eq. (47)): ``k_mi sum_e (e(M_P) - e(M_T))^2`` with edge lengths
-  in the model's normalised units (scene units divided by the template radius), so that the
-  weight does not depend on the scene's units; the sum is nearly independent of the mesh
-  resolution (for a uniform strain ``eps`` it is about ``3.5 eps^2`` times the normalised
-  area).
-- Temporal consistency (thesis eq. (48)): ``k_tc / (W - 1) sum_t ||p_{t+1} - p_t||^2`` over
+- Mesh inextensibility (thesis eq. (47)): ``w sum_e (e(M_P) - e(M_T))^2`` with edge lengths
+  (:func:`polygeo.mesh.edge_length_energy`) in the model's normalised units (scene units
+  divided by the template radius), so that the weight does not depend on the scene's units;
+  the sum is nearly independent of the mesh resolution (for a uniform strain ``eps`` it is
+  about ``3.5 eps^2`` times the normalised area).
+- Temporal consistency (thesis eq. (48)): ``w / (W - 1) sum_t ||p_{t+1} - p_t||^2`` over
   consecutive frames of the window, for the parameters the model lists in ``temporal``.
-- Temporal acceleration (a constant-velocity prior, ours): ``k_acc / (W - 2) sum_t
+- Temporal acceleration (a constant-velocity prior, ours): ``w / (W - 2) sum_t
   ||p_{t+1} - 2 p_t + p_{t-1}||^2`` over the window, for every parameter of the model.
 
 When a sequence has no masks, the silhouette term is dropped and the colour loss compares
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from polygeo.mesh import edge_lengths, edges
+from polygeo.mesh import edge_length_energy, edge_lengths, edges
 from polygeo.render import Camera, RasterSettings, render, rgb_loss, silhouette_loss
 from polygeo.render.texture import flip_v
 
@@ -96,10 +96,10 @@ class ImageTerms:
         Gives the camera, the template's faces and appearance.
     raster : RasterSettings
         Soft rasterizer settings.
-    k_rgb, k_sil : float
+    rgb_weight, silhouette_weight : float
         Weights of the colour and silhouette terms.
     rgb_kind : {"l1", "l2"}
-    sil_kind : {"l2", "l1", "iou"}
+    silhouette_kind : {"l2", "l1", "iou"}
     pyramid : int
         Coarser image levels added to both terms (0: full resolution only, as in phi-SfT).
         Level ``l`` compares ``2^l x 2^l`` block means (average pooling) of the render and
@@ -110,17 +110,18 @@ class ImageTerms:
         Dtype of the renders.
     """
 
-    def __init__(self, sequence, raster: RasterSettings, *, k_rgb: float = 1.0,
-                 k_sil: float = 1.0, rgb_kind: str = "l1", sil_kind: str = "l2",
-                 pyramid: int = 0, dtype: torch.dtype = torch.float32) -> None:
+    def __init__(self, sequence, raster: RasterSettings, *, rgb_weight: float = 1.0,
+                 silhouette_weight: float = 1.0, rgb_kind: str = "l1",
+                 silhouette_kind: str = "l2", pyramid: int = 0,
+                 dtype: torch.dtype = torch.float32) -> None:
         t = sequence.template
         self.camera = Camera(torch.as_tensor(sequence.K, dtype=dtype), width=sequence.width,
                              height=sequence.height)
         self.faces = torch.as_tensor(t.faces, dtype=torch.int64)
         self.raster = raster
         self._hard = RasterSettings(**{**vars(raster), "hard": True})
-        self.k_rgb, self.k_sil = float(k_rgb), float(k_sil)
-        self.rgb_kind, self.sil_kind = rgb_kind, sil_kind
+        self.rgb_weight, self.silhouette_weight = float(rgb_weight), float(silhouette_weight)
+        self.rgb_kind, self.silhouette_kind = rgb_kind, silhouette_kind
         self.pyramid = int(pyramid)
         self.dtype = dtype
         self.has_masks = sequence.has_masks
@@ -185,7 +186,7 @@ class ImageTerms:
             ``(F, H, W)``.
         """
         rgb, alpha = self.render(verts)
-        has_sil = masks is not None and self.k_sil > 0
+        has_sil = masks is not None and self.silhouette_weight > 0
         levels = [(rgb, targets, alpha, masks)]
         if self.pyramid > 0:
             chw = (rgb.permute(0, 3, 1, 2), targets.permute(0, 3, 1, 2))
@@ -201,10 +202,10 @@ class ImageTerms:
                 levels.append((r, t, a, m))
         n = len(levels)
         out = {"rgb": sum(rgb_loss(r, t, kind=self.rgb_kind, reduction="none")
-                          for r, t, _, _ in levels) * (self.k_rgb / n)}
+                          for r, t, _, _ in levels) * (self.rgb_weight / n)}
         if has_sil:
-            out["sil"] = sum(silhouette_loss(a, m, kind=self.sil_kind, reduction="none")
-                             for _, _, a, m in levels) * (self.k_sil / n)
+            out["sil"] = sum(silhouette_loss(a, m, kind=self.silhouette_kind, reduction="none")
+                             for _, _, a, m in levels) * (self.silhouette_weight / n)
         return out
 
 
@@ -220,24 +221,23 @@ class Inextensibility:
         ``(F, 3)``.
     scale : float
         Normalising length (the template radius): lengths are divided by it.
-    k_mi : float
-        Weight.
+    weight : float
+        Weight of the term.
     """
 
     verts: np.ndarray
     faces: np.ndarray
     scale: float
-    k_mi: float = 0.1
+    weight: float = 0.1
 
     def __post_init__(self) -> None:
         self.edges = torch.as_tensor(edges(np.asarray(self.faces)), dtype=torch.int64)
         v = torch.as_tensor(np.asarray(self.verts), dtype=torch.float64)
-        self.rest = edge_lengths(v, self.edges) / self.scale  # (E,)
+        self.rest = edge_lengths(v, self.edges)  # (E,) float64, scene units
 
     def __call__(self, verts: torch.Tensor) -> torch.Tensor:
         """Per-frame loss ``(F,)`` of ``(F, V, 3)`` vertices (scene units)."""
-        e = edge_lengths(verts, self.edges) / self.scale
-        return self.k_mi * (e - self.rest.to(e.dtype)).pow(2).sum(-1)
+        return self.weight * edge_length_energy(verts, self.edges, self.rest, self.scale)
 
 
 def _differences(params: dict[str, torch.Tensor], names, order: int) -> torch.Tensor:
@@ -256,7 +256,7 @@ def _differences(params: dict[str, torch.Tensor], names, order: int) -> torch.Te
     return total / (W - order)
 
 
-def temporal_consistency(params: dict[str, torch.Tensor], names, k_tc: float) -> torch.Tensor:
+def temporal_consistency(params: dict[str, torch.Tensor], names, weight: float) -> torch.Tensor:
     """Temporal consistency (thesis eq. (48)) over a window of stacked parameters.
 
     Parameters
@@ -265,18 +265,19 @@ def temporal_consistency(params: dict[str, torch.Tensor], names, k_tc: float) ->
         Stacked parameters, leading dimension ``W`` (frames of the window in order).
     names : iterable of str
         Parameters that enter the term (``Delta alpha`` and ``Delta uv`` for PolySfT).
-    k_tc : float
-        Weight.
+    weight : float
+        Weight of the term.
 
     Returns
     -------
     torch.Tensor
-        Scalar ``k_tc / (W - 1) sum_t sum_names ||p_{t+1} - p_t||^2`` (0 when ``W < 2``).
+        Scalar ``weight / (W - 1) sum_t sum_names ||p_{t+1} - p_t||^2`` (0 when ``W < 2``).
     """
-    return k_tc * _differences(params, names, 1)
+    return weight * _differences(params, names, 1)
 
 
-def temporal_acceleration(params: dict[str, torch.Tensor], names, k_acc: float) -> torch.Tensor:
+def temporal_acceleration(params: dict[str, torch.Tensor], names,
+                          weight: float) -> torch.Tensor:
     """Constant-velocity prior over a window: squared second differences of the parameters.
 
     Eq. (48) pulls each frame towards the one before it, i.e. towards stopping; this term
@@ -290,13 +291,13 @@ def temporal_acceleration(params: dict[str, torch.Tensor], names, k_acc: float) 
         Stacked parameters, leading dimension ``W`` (frames of the window in order).
     names : iterable of str
         Parameters that enter the term (every parameter of the model by default).
-    k_acc : float
-        Weight.
+    weight : float
+        Weight of the term.
 
     Returns
     -------
     torch.Tensor
-        Scalar ``k_acc / (W - 2) sum_t sum_names ||p_{t+1} - 2 p_t + p_{t-1}||^2`` (0 when
+        Scalar ``weight / (W - 2) sum_t sum_names ||p_{t+1} - 2 p_t + p_{t-1}||^2`` (0 when
         ``W < 3``).
     """
-    return k_acc * _differences(params, names, 2)
+    return weight * _differences(params, names, 2)

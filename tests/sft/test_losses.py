@@ -27,12 +27,12 @@ def test_inextensibility_closed_forms():
             k = j * 5 + i
             f += [[k, k + 1, k + 5], [k + 1, k + 6, k + 5]]
     f = np.array(f)
-    term = Inextensibility(v, f, scale=2.0, k_mi=0.1)
+    term = Inextensibility(v, f, scale=2.0, weight=0.1)
     q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
     moved = torch.tensor(np.stack([v, v @ q.T + 1.0]))
     np.testing.assert_allclose(term(moved).numpy(), [0.0, 0.0], atol=1e-24)
-    eps = 0.03  # uniform stretch: k_mi * sum (eps e_i / s)^2
-    expect = 0.1 * np.sum((eps * term.rest.numpy()) ** 2)
+    eps = 0.03  # uniform stretch: weight * sum (eps e_i / s)^2
+    expect = 0.1 * np.sum((eps * term.rest.numpy() / 2.0) ** 2)  # rest: scene units
     assert float(term(torch.tensor((1 + eps) * v)[None])[0]) == pytest.approx(expect, rel=1e-12)
 
 
