@@ -12,10 +12,10 @@ thread) is what the wall time is on an idle core. ``--jobs N`` runs N configurat
 time, each in its own single-threaded process (CPU seconds are per process).
 
 Sweeps (one factor at a time around the base configuration, the ``SfTSettings`` defaults:
-W = 3, patience 30, frame period 200, order 6, previous-frame initialisation, rigid learning
-rate 1e-3): frame period (iterations), patience, window size, jet order (incl. ``auto``) and
-the thesis' rigid learning rate (1e-4) for PolySfT; frame period and window size for the
-baseline, and the cheap end of both frontiers (window 1 with frame periods 70 and 100; the
+W = 3, patience 30, at most 200 iterations per window (``max_iterations``, the thesis' frame
+period), order 6, rigid learning rate 1e-3): iterations, patience, window size, jet order
+(incl. ``auto``) and the thesis' rigid learning rate (1e-4) for PolySfT; iterations and window
+size for the baseline, and the cheap end of both frontiers (window 1 with 70 and 100; the
 baseline at window 1 with period 100 and without the Adam warm-up, which costs it accuracy).
 The base configurations (PolySfT with its default ``patches="auto"``, which gives the
 sheets one patch and the ``curl`` tube several; 4 patches; the baseline) run on every
@@ -84,8 +84,8 @@ def ensure_sequence(
     return out
 
 
-BASE_POLY = {"method": "polysft", "window": 3, "patience": 30, "frame_period": 200, "order": 6}
-BASE_VERT = {"method": "vertex", "window": 3, "patience": 30, "frame_period": 200}
+BASE_POLY = {"method": "polysft", "window": 3, "patience": 30, "max_iterations": 200, "order": 6}
+BASE_VERT = {"method": "vertex", "window": 3, "patience": 30, "max_iterations": 200}
 
 
 def configs(quick: bool) -> list[tuple[str, str, dict, bool | tuple[str, ...]]]:
@@ -96,8 +96,8 @@ def configs(quick: bool) -> list[tuple[str, str, dict, bool | tuple[str, ...]]]:
         ("vertex base", "vertex", dict(BASE_VERT), True),
     ]
     # the thesis' temporal term (eq. (48), frames start from the previous one) instead of the
-    # default constant-velocity prior (k_acc, frames start extrapolated)
-    thesis_tc = {"k_tc": 0.05, "k_acc": 0.0, "init": "previous"}
+    # default constant-velocity prior (acceleration_weight, frames start extrapolated)
+    thesis_tc = {"consistency_weight": 0.05, "acceleration_weight": 0.0, "init": "previous"}
     out.append(("polysft eq. (48)", "polysft", {**BASE_POLY, **thesis_tc}, True))
     out.append(("vertex eq. (48)", "vertex", {**BASE_VERT, **thesis_tc}, True))
     # several patches, each with its own rigid motion tied by the boundary term (eq. (51))
@@ -108,15 +108,15 @@ def configs(quick: bool) -> list[tuple[str, str, dict, bool | tuple[str, ...]]]:
     # template that is no sheet
     out.append(("polysft patches 1", "polysft", {**BASE_POLY, "patches": 1}, ("curl",)))
     for p in (50, 100, 300) if not quick else (50, 300):
-        out.append((f"polysft period {p}", "polysft", {**BASE_POLY, "frame_period": p}, False))
+        out.append((f"polysft period {p}", "polysft", {**BASE_POLY, "max_iterations": p}, False))
     for p in (50, 300):
-        out.append((f"vertex period {p}", "vertex", {**BASE_VERT, "frame_period": p}, False))
+        out.append((f"vertex period {p}", "vertex", {**BASE_VERT, "max_iterations": p}, False))
     if not quick:
         out.append(
             (
                 "polysft patience 10",
                 "polysft",
-                {**BASE_POLY, "patience": 10, "frame_period": 300},
+                {**BASE_POLY, "patience": 10, "max_iterations": 300},
                 False,
             )
         )
@@ -126,12 +126,12 @@ def configs(quick: bool) -> list[tuple[str, str, dict, bool | tuple[str, ...]]]:
     if not quick:  # the cheap end of both frontiers
         for p in (70, 100):
             out.append((f"polysft window 1 period {p}", "polysft",
-                        {**BASE_POLY, "window": 1, "frame_period": p}, False))
+                        {**BASE_POLY, "window": 1, "max_iterations": p}, False))
             # a window of one has no acceleration term: its start is the only difference
             out.append((f"polysft window 1 period {p} eq. (48)", "polysft",
-                        {**BASE_POLY, "window": 1, "frame_period": p, **thesis_tc}, False))
+                        {**BASE_POLY, "window": 1, "max_iterations": p, **thesis_tc}, False))
         out.append(("vertex window 1 period 100", "vertex",
-                    {**BASE_VERT, "window": 1, "frame_period": 100}, False))
+                    {**BASE_VERT, "window": 1, "max_iterations": 100}, False))
         # the Adam warm-up helps PolySfT and costs the baseline: its best without it
         out.append(("vertex window 1 warmup 0", "vertex",
                     {**BASE_VERT, "window": 1, "warmup": 0}, False))
@@ -139,7 +139,7 @@ def configs(quick: bool) -> list[tuple[str, str, dict, bool | tuple[str, ...]]]:
                     {**BASE_VERT, "window": 1, "warmup": 0, **thesis_tc}, False))
     for o in (2, "auto") if quick else (2, 4, "auto"):
         out.append((f"polysft order {o}", "polysft", {**BASE_POLY, "order": o}, False))
-    if not quick:  # the thesis' rigid learning rate (see sft.optimize.SfTSettings.lr_rigid)
+    if not quick:  # the thesis' rigid learning rate (see sft.settings.OptimiserSettings)
         out.append(("polysft lr_rigid 1e-4", "polysft", {**BASE_POLY, "lr_rigid": 1e-4}, False))
     return out
 
@@ -147,11 +147,12 @@ def configs(quick: bool) -> list[tuple[str, str, dict, bool | tuple[str, ...]]]:
 def run_config(seq: Path, settings: dict, frames: int) -> dict:
     from sft.optimize import SfTSettings, run_sft
 
-    st = SfTSettings(**settings, overlays=0, checkpoint_every=0)
+    st = SfTSettings.from_flat(**settings, overlays=0, checkpoint_every=0, quiet=True,
+                               charts=False)
     import tempfile
 
     with tempfile.TemporaryDirectory(prefix="bm_sft_") as tmp:
-        res = run_sft(seq, tmp, st, resume=False, progress=False, max_frames=frames, charts=False)
+        res = run_sft(seq, tmp, st, resume=False, max_frames=frames)
         vis = visible_errors(seq, Path(tmp) / "meshes", frames)
         model = json.loads((Path(tmp) / "metrics.json").read_text())["model"]
     rows = res.rows
@@ -290,10 +291,11 @@ def memory_run(data: Path, frames: int) -> dict:
     seq = ensure_sequence(data, "bend", frames, 48, (10, 8), texture=64, supersample=2)
     import tempfile
 
-    st = SfTSettings(patience=3, frame_period=3, overlays=0, checkpoint_every=25)
+    st = SfTSettings.from_flat(patience=3, max_iterations=3, overlays=0, checkpoint_every=25,
+                               quiet=True, charts=False)
     with tempfile.TemporaryDirectory(prefix="bm_sft_mem_") as tmp:
         t0 = time.perf_counter()
-        res = run_sft(seq, tmp, st, resume=False, progress=False, charts=False)
+        res = run_sft(seq, tmp, st, resume=False)
         wall = time.perf_counter() - t0
     rss = [r["rss_mb"] for r in res.rows]
     n = len(rss)
@@ -363,7 +365,7 @@ def main(argv: list[str] | None = None) -> int:
         for k in on:
             jobs.append((label, fam, st, k))
     # the costliest runs first (better packing over the workers)
-    jobs.sort(key=lambda j: -j[2]["frame_period"] * j[2]["window"])
+    jobs.sort(key=lambda j: -j[2]["max_iterations"] * j[2]["window"])
     partial = out / "bm_sft.partial.json"
     results, mem = [], None
 

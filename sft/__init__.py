@@ -11,25 +11,28 @@ SfT) shares the losses and the optimiser.
 Modules
 -------
 ``sft.data``      sequence format, validated lazy loader, atomic writer
-``sft.model``     :class:`~sft.model.JetTemplate`, :class:`~sft.model.JetModel` (PolySfT),
-                  :class:`~sft.model.VertexModel` (baseline), :func:`~sft.model.build_model`
+``sft.template``  :class:`~sft.template.JetTemplate`: the template as oriented jet patches
+``sft.model``     :class:`~sft.model.JetModel` (PolySfT), :class:`~sft.model.VertexModel`
+                  (baseline), :func:`~sft.model.build_model`
 ``sft.losses``    colour + silhouette terms, inextensibility (eq. 47), temporal terms (eq. 48,
                   and a constant-velocity prior)
-``sft.optimize``  :class:`~sft.optimize.SfTSettings`, :func:`~sft.optimize.run_sft`
-                  (sliding window, checkpoints, resume), :func:`~sft.optimize.reconstruct_window`
+``sft.settings``  :class:`~sft.settings.SfTSettings` (model, optimiser, losses, raster, output)
+``sft.window``    one window: objective, per-frame Adam, :func:`~sft.window.reconstruct_window`
+``sft.optimize``  :func:`~sft.optimize.run_sft` (sliding window, re-partitioning, checkpoints,
+                  resume)
 ``sft.metrics``   e_3D, e_n, RMSE
 ``sft.cli``       ``polygeo sft SEQUENCE -o OUT`` and the SfT part of ``polygeo demo``
 
 Example
 -------
 >>> from sft.optimize import SfTSettings, run_sft  # doctest: +SKIP
->>> res = run_sft("data/bend", "out/bend", SfTSettings(frame_period=200, patience=30))
+>>> res = run_sft("data/bend", "out/bend", SfTSettings.from_flat(max_iterations=200))
 >>> res.summary["e_3d"], res.summary["e_3d_template"]
 
 Departures from the thesis (documented where they are set): parameters live in normalised
 units (the patch radius is 1), which is what the thesis' learning rates are applied to;
-``k_mi`` defaults to 10 rather than 0.1 and ``lr_rigid`` to 1e-3 rather than 1e-4 for these
-units (see :class:`sft.optimize.SfTSettings`); the soft coverage is remapped before
+``inextensibility_weight`` defaults to 10 rather than 0.1 and ``lr_rigid`` to 1e-3 rather
+than 1e-4 for these units (see :mod:`sft.settings`); the soft coverage is remapped before
 the silhouette and colour terms (see :meth:`sft.losses.ImageTerms.render`); the number of
 patches is chosen from the template (``patches="auto"``) rather than fixed at one.
 """

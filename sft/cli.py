@@ -106,13 +106,12 @@ _HIDDEN = ("hard",)
 
 
 def _int_or_auto(s: str) -> int | str:
-    """An integer or ``"auto"`` (``--order``, ``--patches``)."""
-    if s == "auto":
-        return s
+    """An integer, or the text as given (``--order``, ``--patches``): ``"auto"``, or a value
+    the settings refuse with a message naming the option (exit status 2)."""
     try:
         return int(s)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(f"expected an integer or 'auto', got {s!r}") from exc
+    except ValueError:
+        return s
 
 
 def _floats(s: str) -> tuple[float, ...]:
@@ -147,7 +146,7 @@ def _add_settings_args(p: argparse.ArgumentParser) -> None:
                                        default=None, help=help_)
             continue
         groups[group].add_argument(flag, dest=name, type=_parser_of(types[name]),
-                                   default=None, metavar=name.upper(), help=help_)
+                                   default=None, help=help_)
 
 
 def _bool(s: str) -> bool:

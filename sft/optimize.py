@@ -26,7 +26,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import pickle
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -36,6 +35,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from polygeo import runs
 from polygeo.checks import check_int
 from polygeo.io import write_ply
 
@@ -49,9 +49,7 @@ from .window import _initial, _objective_parts, _optimize_window, _Window, recon
 __all__ = ["SfTSettings", "SfTResult", "run_sft", "reconstruct_window", "CHECKPOINT_NAME"]
 
 #: File name of the checkpoint inside the output folder.
-CHECKPOINT_NAME = "checkpoint.pt"
-#: Version of the checkpoint layout (3: plain tensors and JSON, nested settings).
-_CKPT_VERSION = 3
+CHECKPOINT_NAME = runs.CHECKPOINT_NAME
 #: Per-frame records, one JSON line per frame, written as the run goes.
 FRAMES_NAME = "frames.jsonl"
 #: Loss curves, one JSON line per window.
@@ -169,103 +167,40 @@ def _sequence_fingerprint(seq: Sequence) -> str:
 
 def _run_key(seq: Sequence, st: SfTSettings, T: int) -> str:
     """Fingerprint of what decides a run's meshes: sequence, frame count, settings."""
-    text = json.dumps({"sequence": _sequence_fingerprint(seq), "frames": T,
-                       "settings": st.result_dict()}, sort_keys=True)
-    return hashlib.sha256(text.encode()).hexdigest()
+    return runs.fingerprint({"sequence": _sequence_fingerprint(seq), "frames": T,
+                             "settings": st.result_dict()})
 
 
 # ------------------------------------------------------------------------------ checkpoints
 
 
-def _pack(state: _State, key: str) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
-    """``(tensors, meta)``: the state as named plain tensors and a JSON-able dict."""
-    tensors: dict[str, torch.Tensor] = {}
-    frames: dict[str, Any] = {}
-    named = {f"pending/{j}": p for j, p in state.pending.items()}
-    named.update({"last": state.last, "last2": state.last2})
-    for name, params in named.items():
-        if params is None:
-            frames[name] = None
-            continue
-        frames[name] = {k: v for k, v in params.items() if not isinstance(v, torch.Tensor)}
-        frames[name]["tensors"] = [k for k, v in params.items() if isinstance(v, torch.Tensor)]
-        for k in frames[name]["tensors"]:
-            tensors[f"{name}/{k}"] = params[k]
-    if state.refit is not None:
-        tensors["refit"] = state.refit
-    meta = {"version": _CKPT_VERSION, "key": key, "next": state.next, "frames": frames,
-            "model_state": state.model.state()}
-    return tensors, meta
-
-
-def _unpack(tensors: dict[str, torch.Tensor], meta: dict[str, Any]) -> dict[str, Any]:
-    """Inverse of :func:`_pack`.
-
-    Returns ``pending``, ``last``, ``last2``, ``refit``, ``next`` and ``model_state``.
-    """
-    frames = {}
-    for name, m in meta["frames"].items():
-        if m is None:
-            frames[name] = None
-            continue
-        params = {k: v for k, v in m.items() if k != "tensors"}
-        params.update({k: tensors[f"{name}/{k}"] for k in m["tensors"]})
-        frames[name] = params
-    pending = {int(n.split("/")[1]): p for n, p in frames.items() if n.startswith("pending/")}
-    return {"pending": pending, "last": frames["last"], "last2": frames["last2"],
-            "refit": tensors.get("refit"), "next": int(meta["next"]),
-            "model_state": meta["model_state"]}
-
-
 def _save_checkpoint(path: Path, state: _State, key: str) -> None:
-    tensors, meta = _pack(state, key)
-    tmp = path.with_name(path.name + ".part")
-    torch.save({"tensors": tensors, "meta": json.dumps(meta)}, tmp)
-    os.replace(tmp, path)
+    """The state as plain tensors (:func:`polygeo.runs.save_checkpoint`), keyed by ``key``."""
+    tensors = {"pending": state.pending, "last": state.last, "last2": state.last2,
+               "refit": state.refit}
+    meta = {"fingerprint": key, "next": state.next, "model_state": state.model.state()}
+    runs.save_checkpoint(path, tensors, meta)
 
 
-def _load_checkpoint(path: Path, key: str) -> dict[str, Any]:
-    """The state saved at ``path`` for the run ``key``; refused (ValueError) otherwise.
+def _resume(out: Path, key: str, st: SfTSettings, state: _State, faces) -> None:
+    """Load the checkpoint of ``out`` into ``state`` (rebuilding a re-partitioned model).
 
-    Read with ``torch.load(weights_only=True)``: a file that holds anything but tensors and
-    plain containers (a pickled object) is refused before anything of it runs.
+    Raises :class:`polygeo.runs.CheckpointError` (a ``ValueError``) when the checkpoint
+    belongs to other settings, an older polygeo, or holds anything but plain data; nothing
+    of it runs (:func:`polygeo.runs.load_checkpoint`).
     """
-    try:
-        ck = torch.load(path, weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, EOFError) as exc:
-        raise ValueError(f"{path}: not a checkpoint this version can read safely (it holds "
-                         f"something other than tensors and plain data: {exc}); remove it or "
-                         "choose another output folder") from exc
-    if isinstance(ck, dict) and ck.get("version") == 2:
-        raise ValueError(f"{path}: a version-2 checkpoint (written before the settings were "
-                         "grouped); this version cannot resume it: remove it (the meshes "
-                         "already written stay valid) or choose another output folder")
-    meta = json.loads(ck["meta"]) if isinstance(ck, dict) and "meta" in ck else {}
-    if meta.get("version") != _CKPT_VERSION or meta.get("key") != key:
-        raise ValueError(f"{path}: the checkpoint belongs to another sequence or other settings "
-                         "(or another polygeo version); remove it or choose another output "
-                         "folder")
-    return _unpack(ck["tensors"], meta)
-
-
-def _resume(path: Path, key: str, st: SfTSettings, state: _State, faces) -> None:
-    """Load the checkpoint at ``path`` into ``state`` (rebuilding a re-partitioned model)."""
-    ck = _load_checkpoint(path, key)
-    state.next, state.pending = ck["next"], ck["pending"]
-    state.last, state.last2, state.refit = ck["last"], ck["last2"], ck["refit"]
+    ck = runs.resume_state(out, key, name=CHECKPOINT_NAME)
+    if ck is None:
+        return
+    state.next, state.pending = int(ck.meta["next"]), ck.tensors["pending"]
+    state.last, state.last2 = ck.tensors["last"], ck.tensors["last2"]
+    state.refit = ck.tensors["refit"]
     if state.refit is not None:
         state.model = _refit_model(state.model, st, state.refit, faces)
-    state.model.load_state(ck["model_state"])
+    state.model.load_state(ck.meta["model_state"])
 
 
 # ------------------------------------------------------------------------------ records
-
-
-def _read_jsonl(path: Path) -> list[dict]:
-    """The records of a JSON-lines file (empty when it does not exist)."""
-    if not path.exists():
-        return []
-    return [json.loads(ln) for ln in path.read_text().splitlines() if ln.strip()]
 
 
 def _truncate_jsonl(path: Path, start: int) -> None:
@@ -275,13 +210,8 @@ def _truncate_jsonl(path: Path, start: int) -> None:
     if start == 0:
         path.unlink()
         return
-    kept = [r for r in _read_jsonl(path) if r["frame"] < start]
-    path.write_text("".join(json.dumps(r) + "\n" for r in kept))
-
-
-def _append_jsonl(path: Path, record: dict) -> None:
-    with open(path, "a") as fh:
-        fh.write(json.dumps(record) + "\n")
+    kept = [r for r in runs.read_jsonl(path) if r["frame"] < start]
+    runs.atomic_write_text(path, "".join(json.dumps(r) + "\n" for r in kept))
 
 
 def _model_info(model: DeformationModel, rows: list[dict]) -> dict:
@@ -458,43 +388,35 @@ def _advance(run: _Run, state: _State, s: int) -> tuple[dict[str, Any], list[flo
 def _slide(run: _Run, state: _State, key: str, max_windows: int | None) -> None:
     """Slide the window from ``state.next`` to the end (or ``max_windows`` windows)."""
     out, every = run.out, run.st.output.checkpoint_every
-    bar = None
-    if not run.st.output.quiet:
-        from tqdm import tqdm
-
-        bar = tqdm(total=run.T, initial=state.next, desc=f"sft {run.st.model.method}",
-                   unit="frame")
+    bar = runs.progress(total=run.T, initial=state.next, desc=f"sft {run.st.model.method}",
+                        unit="frame", quiet=run.st.output.quiet)
     n_windows = 0
-    for s in range(state.next, run.T):
-        if max_windows is not None and n_windows >= max_windows:
-            break
-        row, curve = _advance(run, state, s)
-        _append_jsonl(out / FRAMES_NAME, row)
-        _append_jsonl(out / LOSSES_NAME, {"frame": s, "iterations": row["iterations"],
-                                          "loss": curve})
-        n_windows += 1
-        if every and (n_windows % every == 0 or s == run.T - 1):
-            _save_checkpoint(out / CHECKPOINT_NAME, state, key)
-        if bar is not None:
+    with runs.JsonlLog(out / FRAMES_NAME) as frames, runs.JsonlLog(out / LOSSES_NAME) as losses:
+        for s in range(state.next, run.T):
+            if max_windows is not None and n_windows >= max_windows:
+                break
+            row, curve = _advance(run, state, s)
+            frames.append(row)
+            losses.append({"frame": s, "iterations": row["iterations"], "loss": curve})
+            n_windows += 1
+            if every and (n_windows % every == 0 or s == run.T - 1):
+                _save_checkpoint(out / CHECKPOINT_NAME, state, key)
             bar.update(1)
             if "e_3d" in row:
                 bar.set_postfix(e3d=f"{row['e_3d']:.4f}", it=row["iterations"])
-    if bar is not None:
-        bar.close()
+    bar.close()
 
 
 def _finish(run: _Run, model: DeformationModel) -> SfTResult:
     """Read the records back, write ``metrics.json`` (atomically) and the charts."""
     out = run.out
-    rows = _read_jsonl(out / FRAMES_NAME)
+    rows = runs.read_jsonl(out / FRAMES_NAME)
     complete = len(rows) == run.T
     summary = summarize(rows)
     record = {"sequence": str(run.seq.root), "frames": run.T, "complete": complete,
               "settings": run.st.to_dict(), "model": _model_info(model, rows),
               "mean": summary, "per_frame": rows}
-    tmp = out / "metrics.json.part"
-    tmp.write_text(json.dumps(record, indent=1) + "\n")
-    os.replace(tmp, out / "metrics.json")
+    runs.atomic_write_json(out / "metrics.json", record, indent=1)
     if run.st.output.charts and complete:
         from .plots import write_charts
 
@@ -538,9 +460,11 @@ def run_sft(
     ------
     TypeError
         If ``settings`` is not an :class:`SfTSettings`.
-    ValueError
-        If ``resume`` is True and the checkpoint belongs to another sequence, frame count or
-        settings, is of an older layout, or holds anything but tensors and plain data.
+    polygeo.runs.CheckpointError
+        (a ``ValueError``) if ``resume`` is True and the checkpoint belongs to another
+        sequence, frame count or settings, was written by an older polygeo (version-2
+        checkpoints are refused, not read), or holds anything but tensors and plain data (it
+        is refused before any of it runs).
     """
     st = SfTSettings() if settings is None else settings
     if not isinstance(st, SfTSettings):
@@ -552,8 +476,8 @@ def run_sft(
         T = min(T, check_int(max_frames, "max_frames", low=1))
     run, state = _prepare(seq, st, out, T)
     key = _run_key(seq, st, T)
-    if resume and (out / CHECKPOINT_NAME).is_file():
-        _resume(out / CHECKPOINT_NAME, key, st, state, seq.template.faces)
+    if resume:
+        _resume(out, key, st, state, seq.template.faces)
     # records go to files as the run goes (memory stays flat); on resume, lines of frames
     # after the checkpoint are dropped
     for name in (LOSSES_NAME, FRAMES_NAME):

@@ -276,3 +276,54 @@ def test_dihedral_hinges_reuse_matches_search():
         mesh.dihedral_angles(x, f, hinges=(d.edges, d.faces))
     with pytest.raises(ValueError, match="hinges"):
         mesh.dihedral_angles(x[:6], f[:1], hinges=d)
+
+
+def test_edge_length_energy_isometry_stretch_and_units(sphere, rng):
+    v, f = sphere
+    e = mesh.edges(f)
+    rest = np.linalg.norm(v[e[:, 1]] - v[e[:, 0]], axis=1)  # independent of edge_lengths
+    q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    moved = np.stack([v, v @ q.T + 2.0])  # rigid motions are free
+    np.testing.assert_allclose(mesh.edge_length_energy(moved, e, rest), [0.0, 0.0], atol=1e-24)
+    eps, scale = 0.02, 3.0  # uniform stretch: eps^2 sum (r / scale)^2
+    got = mesh.edge_length_energy((1 + eps) * v, e, rest, scale)
+    assert isinstance(got, np.ndarray) and got.shape == ()
+    assert float(got) == pytest.approx(eps**2 * np.sum((rest / scale) ** 2), rel=1e-10)
+    # scale-free: the same shape in millimetres with scale in millimetres
+    mm = mesh.edge_length_energy(1000 * (1 + eps) * v, e, 1000 * rest, 1000 * scale)
+    assert float(mm) == pytest.approx(float(got), rel=1e-10)
+    # torch in, torch out; float32 vertices against float64 rest lengths
+    t = mesh.edge_length_energy(torch.tensor((1 + eps) * v, dtype=torch.float32), e, rest,
+                                scale)
+    assert t.dtype == torch.float32 and float(t) == pytest.approx(float(got), rel=1e-4)
+
+
+def test_edge_length_energy_gradcheck_and_zero_length_edge(gen):
+    v, f, _ = grid(4, jitter=0.3)
+    e = mesh.edges(f)
+    rest = torch.rand(len(e), generator=gen, dtype=torch.float64) * 0.3
+    x = (torch.tensor(v) + 0.05 * torch.randn(2, *v.shape, generator=gen,
+                                              dtype=torch.float64)).requires_grad_(True)
+    torch.autograd.gradcheck(lambda z: mesh.edge_length_energy(z, e, rest, 0.7), (x,))
+    # a collapsed edge: finite energy and gradients (no NaN)
+    y = torch.tensor(v).clone()
+    y[e[0, 1]] = y[e[0, 0]]
+    y.requires_grad_(True)
+    mesh.edge_length_energy(y, e, rest).backward()
+    assert torch.isfinite(y.grad).all()
+
+
+@pytest.mark.parametrize("kwargs, exc, match", [
+    (dict(rest_lengths=np.ones(3)), ValueError, "rest_lengths"),
+    (dict(rest_lengths=-np.ones(10)), ValueError, "rest_lengths: expected values >= 0"),
+    (dict(rest_lengths=np.full(10, np.nan)), ValueError, "rest_lengths: expected finite"),
+    (dict(scale=0.0), ValueError, "scale: expected a finite value > 0"),
+    (dict(scale="a"), TypeError, "scale"),
+    (dict(vertices=np.ones((5, 2))), ValueError, "vertices"),
+])
+def test_edge_length_energy_validators(kwargs, exc, match):
+    v, f, _ = grid(3)
+    e = mesh.edges(f)[:10]
+    args = {"vertices": v, "edge_index": e, "rest_lengths": np.ones(10), **kwargs}
+    with pytest.raises(exc, match=match):
+        mesh.edge_length_energy(**args)

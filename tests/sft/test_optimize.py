@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from polygeo.io import read_points
+from polygeo.runs import load_checkpoint
 from sft.data import load_sequence
 from sft.metrics import e_3d
 from sft.optimize import CHECKPOINT_NAME, SfTSettings, reconstruct_window, run_sft
@@ -68,7 +69,7 @@ def test_resume_equals_uninterrupted(make_sequence, tmp_path):
     curves = (tmp_path / "cut" / "losses.jsonl").read_text().splitlines()
     assert [json.loads(c)["frame"] for c in curves] == [0, 1, 2, 3]
     # a checkpoint of other settings is refused
-    with pytest.raises(ValueError, match="checkpoint belongs to another sequence or other"):
+    with pytest.raises(ValueError, match="was written with other settings"):
         run_sft(seq, tmp_path / "cut", S(patience=6, max_iterations=12))
 
 
@@ -95,8 +96,8 @@ def test_refit_splits_a_rolling_sheet_and_resumes(make_sequence, tmp_path):
         assert r["e_3d"] < r["e_3d_template"]
     part = run_sft(seq, tmp_path / "cut", st, max_windows=first + 2)
     assert not part.complete
-    ck = torch.load(tmp_path / "cut" / CHECKPOINT_NAME, weights_only=True)
-    assert ck["tensors"]["refit"].shape == (seq.template.n_verts, 3)
+    ck = load_checkpoint(tmp_path / "cut" / CHECKPOINT_NAME)
+    assert ck.tensors["refit"].shape == (seq.template.n_verts, 3)
     resumed = run_sft(seq, tmp_path / "cut", st)
     for i in range(6):
         b = read_points(tmp_path / "cut" / "meshes" / f"{i:06d}.ply").points
@@ -118,9 +119,8 @@ def test_records_stream_to_disk_and_resume_drops_unsaved_frames(make_sequence, t
     run_sft(seq, tmp_path / "cut", st, max_windows=3)
     lines = (tmp_path / "cut" / "frames.jsonl").read_text().splitlines()
     assert [json.loads(ln)["frame"] for ln in lines] == [0, 1, 2]
-    ck = torch.load(tmp_path / "cut" / CHECKPOINT_NAME, weights_only=True)
-    meta = json.loads(ck["meta"])
-    assert meta["next"] == 2 and "rows" not in meta
+    ck = load_checkpoint(tmp_path / "cut" / CHECKPOINT_NAME)
+    assert ck.meta["next"] == 2 and "rows" not in ck.meta
     resumed = run_sft(seq, tmp_path / "cut", st)
     assert [r["frame"] for r in resumed.rows] == [0, 1, 2, 3]
     for ra, rb in zip(full.rows, resumed.rows):
@@ -431,7 +431,7 @@ def test_checkpoint_with_a_pickled_object_is_refused_and_runs_nothing(make_seque
     out, marker = tmp_path / "run", tmp_path / "ran.txt"
     out.mkdir()
     torch.save({"meta": "{}", "tensors": {}, "payload": _Touch(marker)}, out / CHECKPOINT_NAME)
-    with pytest.raises(ValueError, match="not a checkpoint this version can read safely"):
+    with pytest.raises(ValueError, match="refused because loading it could run arbitrary"):
         run_sft(seq, out, S(patience=3, max_iterations=4, overlays=0))
     assert not marker.exists()  # the pickled object's code never ran
     assert not any((out / "meshes").iterdir())  # and no window ran either
@@ -449,23 +449,23 @@ def test_version_2_checkpoint_is_refused_with_a_clear_message(make_sequence, tmp
            "next": 1, "pending": {1: {"d_uv": torch.zeros(3, 2), "_t": 5}}, "last": None,
            "last2": None, "refit": None, "model_state": {"order": 6}}
     torch.save(old, out / CHECKPOINT_NAME)
-    with pytest.raises(ValueError, match="version-2 checkpoint .* remove it"):
+    with pytest.raises(ValueError, match="written by an older polygeo.*start the run afresh"):
         run_sft(seq, out, S(patience=3, max_iterations=4, overlays=0))
 
 
 def test_resume_is_keyed_by_the_settings_that_decide_the_result(make_sequence, tmp_path):
-    from sft.optimize import _load_checkpoint, _run_key
+    from polygeo.runs import resume_state
+    from sft.optimize import _run_key
 
     seq = load_sequence(make_sequence("small", 4, size=64, grid=(12, 9)))
     st = S(patience=3, max_iterations=6, overlays=0)
     run_sft(seq, tmp_path / "r", st, max_windows=1)
-    ck = tmp_path / "r" / CHECKPOINT_NAME
-    # output settings do not change the key; any other setting, the frame count or the
-    # sequence do
-    assert _load_checkpoint(ck, _run_key(seq, st.replace(overlays=3, quiet=False), 4))
+    run = tmp_path / "r"
+    # output settings do not change the key; any other setting or the frame count do
+    assert resume_state(run, _run_key(seq, st.replace(overlays=3, quiet=False), 4))
     for other in (_run_key(seq, st.replace(rgb_weight=0.9), 4), _run_key(seq, st, 3),
                   _run_key(seq, st.replace(sigma=0.2), 4)):
-        with pytest.raises(ValueError, match="belongs to another sequence or other settings"):
-            _load_checkpoint(ck, other)
+        with pytest.raises(ValueError, match="was written with other settings"):
+            resume_state(run, other)
     res = run_sft(seq, tmp_path / "r", st.replace(overlays=1))  # resumes
     assert res.complete and [r["frame"] for r in res.rows] == [0, 1, 2, 3]
