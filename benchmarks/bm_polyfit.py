@@ -130,16 +130,12 @@ def bench_families(n: int, orders, bar) -> list[dict]:
 def _grid_family(n: int, m: int, seed: int):
     """Family sums sampled on an m x m grid of [-1, 1]^2 (shared faces), randomly rotated."""
     from polygeo.frames import random_rotation
-    from polygeo.synthetic import _family_height_grad, _family_params, _grid_faces
 
-    rng = np.random.default_rng(seed)
-    t = np.linspace(-1, 1, m)
-    U, V = np.meshgrid(t, t, indexing="ij")
-    uv = np.broadcast_to(np.stack([U.ravel(), V.ravel()], 1), (n, m * m, 2)).copy()
-    z, _ = _family_height_grad(uv, _family_params(rng, n, syn.PATCH_FAMILIES, 0.5))
-    local = np.concatenate([uv, z[..., None]], -1)
+    grid = syn.plane_mesh(m)  # m x m vertices on [-1, 1]^2 and their triangles
+    fam = syn.family_patches(n, uv=grid.points[:, :2], max_angle=0.0, seed=seed)
+    local = fam.points  # not rotated (max_angle=0): (u, v, height)
     R = random_rotation(n, torch.Generator().manual_seed(seed)).to(torch.float64).numpy()
-    return torch.from_numpy(np.einsum("bij,bpj->bpi", R, local)), _grid_faces(m, m, False, False)
+    return torch.from_numpy(np.einsum("bij,bpj->bpi", R, local)), grid.faces
 
 
 def _foldover(local, faces) -> torch.Tensor:

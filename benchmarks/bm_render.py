@@ -41,12 +41,12 @@ from polygeo.render import (
     RasterSettings,
     checkerboard,
     iou,
+    project_faces,
     render,
     render_reference,
     render_silhouette,
     soft_iou,
 )
-from polygeo.render.soft import _prepare
 
 # ------------------------------------------------------------------ scenes
 
@@ -355,7 +355,7 @@ def main() -> int:
         verts, faces, uvs, tex, cam = scene(size, grid)
         f_np = faces.numpy()
         row = {"size": size, "faces": int(len(f_np)), "mode": mode}
-        _, _, fv, _, _, _, _ = _prepare(verts.double(), faces, cam, default, "world")
+        fv = project_faces(verts.double(), faces, cam, default)[None]  # (1, F, 3, 3)
         row["faces_per_pixel"], row["coverage"] = faces_per_pixel(fv, size, size, default)
         for nt in threads:
             numba.set_num_threads(min(nt, numba.config.NUMBA_NUM_THREADS))

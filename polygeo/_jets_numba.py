@@ -15,10 +15,17 @@ import numba as nb
 import numpy as np
 import torch
 
-from .jets import COLLINEAR_TOL
+from ._jets_common import COLLINEAR_TOL, exponents_np
 from .status import Status
 
-__all__ = ["fit_numba", "fit_item", "fit_scratch", "accumulate_sample"]
+__all__ = [
+    "fit_numba",
+    "fit_item",
+    "fit_scratch",
+    "accumulate_sample",
+    "factor_normal",
+    "solve_factored",
+]
 
 _OK = int(Status.OK)
 _TOO_FEW = int(Status.TOO_FEW_POINTS)
@@ -110,14 +117,14 @@ _factor6, _solve6 = _make_small(6)
 
 
 @nb.njit(cache=True, inline="always")
-def _factor(mom, ep, eq, m, N, D, L, Ld, Linv):
+def factor_normal(mom, ep, eq, m, N, D, L, Ld, Linv):
     if m == 6:
         return _factor6(mom, ep, eq, m, N, D, L, Ld, Linv)
     return _factor_any(mom, ep, eq, m, N, D, L, Ld, Linv)
 
 
 @nb.njit(cache=True, inline="always")
-def _solve(L, Ld, m, b, x):
+def solve_factored(L, Ld, m, b, x):
     if m == 6:
         _solve6(L, Ld, m, b, x)
     else:
@@ -396,14 +403,14 @@ def fit_item(uv, z, w, has_w, mask, has_mask, b, h_given, order, fallback, max_c
         success = False
         cc = math.inf
         if cnt >= m:
-            cc = _factor(mom, ep, eq, m, N, D, L, Ld, Linv)
+            cc = factor_normal(mom, ep, eq, m, N, D, L, Ld, Linv)
             success = cc <= max_cond and not flat
         if o == order:
             creq = cc
         if success:
             for j in range(m):
                 g[j] = D[j] * rhs[j]
-            _solve(L, Ld, m, g, y)
+            solve_factored(L, Ld, m, g, y)
             for j in range(m):
                 x[j] = D[j] * y[j]
             if cc > refine_above:
@@ -419,7 +426,7 @@ def fit_item(uv, z, w, has_w, mask, has_mask, b, h_given, order, fallback, max_c
                         g[j] += r * pu[ep[j]] * pv[eq[j]]
                 for j in range(m):
                     g[j] *= D[j]
-                _solve(L, Ld, m, g, y)
+                solve_factored(L, Ld, m, g, y)
                 for j in range(m):
                     x[j] += D[j] * y[j]
             if interp:
@@ -427,7 +434,7 @@ def fit_item(uv, z, w, has_w, mask, has_mask, b, h_given, order, fallback, max_c
                 for j in range(m):
                     g[j] = 0.0
                 g[0] = D[0]
-                _solve(L, Ld, m, g, y)
+                solve_factored(L, Ld, m, g, y)
                 f = x[0] / (D[0] * y[0])
                 for j in range(m):
                     x[j] -= D[j] * y[j] * f
@@ -486,10 +493,11 @@ def fit_numba(uv, z, w, mask, s, order, fallback, max_cond, refine_above, interp
     """Run the compiled kernel on torch inputs; return the tuple the torch backend returns.
 
     ``mask`` is the caller's bool mask or None; non-finite samples and zero weights are
-    excluded inside the kernel.
+    excluded inside the kernel. Two fields are left for the caller (:func:`polygeo.jets.fit`)
+    to complete with the torch backend, so that this module never imports :mod:`polygeo.jets`:
+    ``rank`` is -1 for the items not solved at full rank, and with ``fallback=False`` the
+    coefficients and residuals of the items whose status is not OK are unset.
     """
-    from .jets import _exponents_np
-
     B, K = z.shape
 
     def arr(t, dtype):
@@ -503,7 +511,7 @@ def fit_numba(uv, z, w, mask, s, order, fallback, max_cond, refine_above, interp
     m_np = arr(mask, np.bool_) if has_mask else np.ones((1, 1), dtype=np.bool_)
     has_scale = s is not None
     s_np = arr(s, np.float64) if has_scale else np.ones(1)
-    e = _exponents_np(order)
+    e = exponents_np(order)
     ep = np.ascontiguousarray(e[:, 0])
     eq = np.ascontiguousarray(e[:, 1])
     M = len(e)
@@ -519,33 +527,6 @@ def fit_numba(uv, z, w, mask, s, order, fallback, max_cond, refine_above, interp
         _fit_kernel(uv_np, z_np, w_np, has_w, m_np, has_mask, s_np, has_scale, order,
                     bool(fallback), float(max_cond), float(refine_above), bool(interpolate), ep,
                     eq, coeffs, fitted, status, cond, resid, h, count, rank)
-    out = [torch.from_numpy(a) for a in (coeffs, resid, rank, cond, h, status, fitted, count)]
-    flagged = np.nonzero(rank < 0)[0]
-    if flagged.size:
-        # numerical rank of the (rare) rank-deficient items, as the torch backend computes it
-        from .jets import _equilibrate, _normal_system, _numerical_rank, _valid_mask
-
-        bt = torch.from_numpy(flagged)
-        uvb, zb = uv[bt].detach().to(torch.float64), z[bt].detach().to(torch.float64)
-        wb = None if w is None else w[bt].detach()
-        vb = _valid_mask(uvb, zb, wb, None if mask is None else mask[bt])
-        uvb = torch.where(vb[..., None], uvb, torch.zeros_like(uvb))
-        zb = torch.where(vb, zb, torch.zeros_like(zb))
-        wb = vb.to(torch.float64) if wb is None else torch.where(vb, wb, torch.zeros_like(wb))
-        su = uvb / out[4][bt][:, None, None]
-        Ne = _equilibrate(_normal_system(su, zb, wb, order)[2])[1]
-        out[2][bt] = _numerical_rank(Ne, max_cond)
-    if not fallback:
-        bad = np.nonzero(status != _OK)[0]
-        if bad.size:
-            # Minimum-norm solutions of the rare rank-deficient items, via the torch backend.
-            from .jets import _fit_torch_top, _valid_mask
-
-            bt = torch.from_numpy(bad)
-            wb = None if w is None else w[bt]
-            vb = _valid_mask(uv[bt], z[bt], wb, None if mask is None else mask[bt])
-            sub = _fit_torch_top(uv[bt], z[bt], wb, vb, None if s is None else s[bt], order,
-                                 False, max_cond, refine_above)
-            out[0][bt] = sub[0].detach()
-            out[1][bt] = sub[1].detach()
-    return tuple(out)
+    return tuple(
+        torch.from_numpy(a) for a in (coeffs, resid, rank, cond, h, status, fitted, count)
+    )

@@ -23,8 +23,9 @@ from dataclasses import dataclass
 
 import torch
 
+from ._jets_common import exponents_np
 from .checks import as_tensor, check_shape
-from .jets import _as_coeffs, _exponents_np, derivatives
+from .jets import as_coeffs, derivatives
 
 __all__ = [
     "SurfaceGeometry",
@@ -299,7 +300,7 @@ def from_jet(coeffs, uv=None) -> SurfaceGeometry:
     TypeError
         On non-numeric input.
     """
-    c, order = _as_coeffs(coeffs)
+    c, order = as_coeffs(coeffs)
     if uv is None:
         return from_derivatives(*_origin_patch_derivatives(c, order))
     t = as_tensor(uv, "uv")
@@ -427,7 +428,7 @@ class _TruncPoly:
 
     def __init__(self, degree: int):
         self.degree = degree
-        e = _exponents_np(degree)
+        e = exponents_np(degree)
         self.T = len(e)
         index = {(int(p), int(q)): i for i, (p, q) in enumerate(e)}
         rows_i, rows_j, rows_k = [], [], []
@@ -486,7 +487,7 @@ def monge_form(coeffs, frame_rotation=None, frame_origin=None, at=None) -> Monge
     polynomial arithmetic (exact for the jet, no refitting). As in CGAL, ``b`` is computed for
     jets of order >= 3 and ``c`` for order >= 4; lower orders give zeros.
     """
-    c, order = _as_coeffs(coeffs)
+    c, order = as_coeffs(coeffs)
     B = c.shape[0]
     dtype = c.dtype
     if at is None:

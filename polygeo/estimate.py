@@ -50,7 +50,10 @@ import torch
 from . import jets
 from ._diffgeo_numba import jet_geometry, origin_geometry
 from ._frames_numba import height_frame, height_frames_par, height_frames_ser
-from ._jets_numba import _factor, _solve, accumulate_sample, fit_item, fit_scratch
+from ._jets_common import exponents_np
+from ._jets_numba import accumulate_sample, fit_item, fit_scratch
+from ._jets_numba import factor_normal as _factor
+from ._jets_numba import solve_factored as _solve
 from ._numba_util import finite_rows, njit_pair
 from .checks import as_tensor, check_choice, check_faces, check_int, check_positive, check_shape
 from .neighbors import PointIndex, mesh_k_ring
@@ -860,7 +863,7 @@ def differential_quantities(
             # sizes chosen at the lowest order; with several orders, the F-test then runs at
             # the chosen sizes (general path below)
             o_ = orders[0]
-            e = jets._exponents_np(o_)
+            e = exponents_np(o_)
             sz = np.array(sorted({min(c, nbr.shape[1]) for c in kc}), dtype=np.int64)
             m_ = jets.n_coeffs(o_)
             kframe = int(min(sz, key=lambda c: abs(int(c) - 4 * m_)))
@@ -888,7 +891,7 @@ def differential_quantities(
         if len(sizes) == 1 and len(orders) == 1:
             # the common case, fused: frames -> fit -> geometry straight into the outputs
             o_ = orders[0]
-            e = jets._exponents_np(o_)
+            e = exponents_np(o_)
             kernel = _fused_par if q.size >= _PARALLEL_MIN else _fused_ser
             kernel(P, np.ascontiguousarray(rep[q]), np.ascontiguousarray(q),
                    np.ascontiguousarray(nbr), np.ascontiguousarray(dist),

@@ -38,14 +38,11 @@ from functools import cache
 import numpy as np
 import torch
 
+from ._jets_common import COLLINEAR_TOL
+from ._jets_common import exponents_np as _exponents_np
 from .checks import as_tensor, check_choice, check_int, check_positive, check_shape
 from .status import Status
-
-#: Parameter samples whose covariance has ``det <= COLLINEAR_TOL * trace^2`` lie on a line
-#: (their spread across it is below 1e-5 of their spread along it): no plane, hence no jet of
-#: order >= 1, is defined, whatever the equilibration of the normal equations makes of the
-#: rounding noise across the line. Such items fall back to order 0 with status DEGENERATE.
-COLLINEAR_TOL = 1e-10
+from .types import ArrayLike
 
 __all__ = [
     "MAX_ORDER",
@@ -53,6 +50,7 @@ __all__ = [
     "n_coeffs",
     "order_from_ncoeffs",
     "exponents",
+    "as_coeffs",
     "monomials",
     "monomial_derivatives",
     "fit",
@@ -122,14 +120,6 @@ def order_from_ncoeffs(m: int) -> int:
             f"got {m}"
         )
     return n
-
-
-@cache
-def _exponents_np(order: int) -> np.ndarray:
-    """(M, 2) int64 array of (p, q) exponents in the DESIGN.md order."""
-    return np.array(
-        [(i - j, j) for i in range(order + 1) for j in range(i + 1)], dtype=np.int64
-    ).reshape(-1, 2)
 
 
 def _check_basis_order(order: int, name: str = "order") -> int:
@@ -262,7 +252,30 @@ def monomial_derivatives(uv, order: int, du: int = 0, dv: int = 0) -> torch.Tens
 # --------------------------------------------------------------------------------------------
 
 
-def _as_coeffs(coeffs, name: str = "coeffs") -> tuple[torch.Tensor, int]:
+def as_coeffs(coeffs: ArrayLike, name: str = "coeffs") -> tuple[torch.Tensor, int]:
+    """Check a batch of jet coefficients and read off the jet order.
+
+    Parameters
+    ----------
+    coeffs : array_like or torch.Tensor, shape (B, M), floating
+        Coefficients in the storage order of DESIGN.md §4, ``M = (n+1)(n+2)/2``.
+    name : str
+        Argument name used in error messages.
+
+    Returns
+    -------
+    coeffs : torch.Tensor, shape (B, M)
+        The coefficients as a floating tensor (see :func:`polygeo.checks.as_tensor`).
+    order : int
+        The jet order ``n`` (at most 12).
+
+    Raises
+    ------
+    ValueError
+        If ``coeffs`` is not 2-D, ``M`` is not a triangular number or ``n > 12``.
+    TypeError
+        On non-numeric input.
+    """
     c = as_tensor(coeffs, name)
     check_shape(c, name, ("B", "M"))
     m = c.shape[1]
@@ -309,7 +322,7 @@ def evaluate(coeffs, uv, du: int = 0, dv: int = 0):
         On non-numeric input.
     """
     numpy_in = not isinstance(coeffs, torch.Tensor)
-    c, order = _as_coeffs(coeffs)
+    c, order = as_coeffs(coeffs)
     t = _as_eval_uv(uv, c.shape[0])
     dtype = torch.promote_types(c.dtype, t.dtype)
     c, t = c.to(dtype), t.to(dtype)
@@ -343,7 +356,7 @@ def derivatives(coeffs, uv, max_order: int = 2) -> dict:
     """
     numpy_in = not isinstance(coeffs, torch.Tensor)
     max_order = _check_basis_order(max_order, "max_order")
-    c, order = _as_coeffs(coeffs)
+    c, order = as_coeffs(coeffs)
     t = _as_eval_uv(uv, c.shape[0])
     dtype = torch.promote_types(c.dtype, t.dtype)
     c, t = c.to(dtype), t.to(dtype)
@@ -577,6 +590,8 @@ def fit(
 
         res = fit_numba(uv_t, z_t, w, m, s, order, fallback, max_cond, refine_above,
                         interpolate=bool(interpolate))
+        res = _complete_numba_fit(res, uv_t, z_t, w, m, s, order, fallback, max_cond,
+                                  refine_above)
     else:
         valid = _valid_mask(uv_t, z_t, w, m)
         res = _fit_torch_top(uv_t, z_t, w, valid, s, order, fallback, max_cond, refine_above,
@@ -593,6 +608,41 @@ def fit(
         n_points=count,
         order=order,
     )
+
+
+def _complete_numba_fit(res, uv, z, w, mask, s, order, fallback, max_cond, refine_above):
+    """Fill in what the compiled kernel leaves to the torch backend (rare items).
+
+    The numerical rank of the items not solved at full rank (``rank == -1``) and, with
+    ``fallback=False``, the minimum-norm solutions of the items whose status is not OK.
+    """
+    out = list(res)
+    rank, status = out[2], out[5]
+    flagged = torch.nonzero(rank < 0)[:, 0]
+    if flagged.numel():
+        # numerical rank of the (rare) rank-deficient items, as the torch backend computes it
+        bt = flagged
+        uvb, zb = uv[bt].detach().to(torch.float64), z[bt].detach().to(torch.float64)
+        wb = None if w is None else w[bt].detach()
+        vb = _valid_mask(uvb, zb, wb, None if mask is None else mask[bt])
+        uvb = torch.where(vb[..., None], uvb, torch.zeros_like(uvb))
+        zb = torch.where(vb, zb, torch.zeros_like(zb))
+        wb = vb.to(torch.float64) if wb is None else torch.where(vb, wb, torch.zeros_like(wb))
+        su = uvb / out[4][bt][:, None, None]
+        Ne = _equilibrate(_normal_system(su, zb, wb, order)[2])[1]
+        out[2][bt] = _numerical_rank(Ne, max_cond)
+    if not fallback:
+        bad = torch.nonzero(status != int(Status.OK))[:, 0]
+        if bad.numel():
+            # Minimum-norm solutions of the rare rank-deficient items, via the torch backend.
+            bt = bad
+            wb = None if w is None else w[bt]
+            vb = _valid_mask(uv[bt], z[bt], wb, None if mask is None else mask[bt])
+            sub = _fit_torch_top(uv[bt], z[bt], wb, vb, None if s is None else s[bt], order,
+                                 False, max_cond, refine_above)
+            out[0][bt] = sub[0].detach()
+            out[1][bt] = sub[1].detach()
+    return tuple(out)
 
 
 # ---- torch backend --------------------------------------------------------------------------

@@ -626,12 +626,12 @@ def vertex_adjacency(faces: Any, n_vertices: int) -> sp.csr_matrix:
 def mesh_k_ring(
     faces: Any,
     n_vertices: int,
-    k: int = 1,
+    rings: int = 1,
     *,
     include_self: bool = True,
     max_neighbors: int | None = None,
 ) -> KRing:
-    """k-ring neighbourhoods of every vertex of a triangle mesh (breadth-first by hops).
+    """k-ring neighbourhoods (``rings`` hops) of every vertex of a triangle mesh.
 
     Parameters
     ----------
@@ -639,8 +639,8 @@ def mesh_k_ring(
         Triangles.
     n_vertices : int
         Number of vertices ``N``.
-    k : int
-        Ring radius in edges, ``k >= 1``.
+    rings : int
+        Ring radius in edges (the ``k`` of "k-ring"), ``rings >= 1``.
     include_self : bool
         Put the vertex itself first (hop 0).
     max_neighbors : int, optional
@@ -656,18 +656,18 @@ def mesh_k_ring(
     Raises
     ------
     ValueError
-        Bad shapes, out-of-range indices, ``k < 1``.
+        Bad shapes, out-of-range indices, ``rings < 1``.
     TypeError
         Non-integer faces.
     """
     n = check_int(n_vertices, "n_vertices", low=0)
-    k = check_int(k, "k", low=1)
+    rings = check_int(rings, "rings", low=1)
     f, numpy_in = check_faces(faces, n).cpu().numpy(), is_numpy_like(faces)
     adj = vertex_adjacency(f, n)
     step = (adj + sp.identity(n, format="csr")).tocsr()
     reached = sp.identity(n, format="csr", dtype=np.float64)
     hop = sp.identity(n, format="csr", dtype=np.float64)  # data = hop + 1
-    for h in range(1, k + 1):
+    for h in range(1, rings + 1):
         nxt = (reached @ step).tocsr()
         nxt.data[:] = 1.0
         new = nxt - reached

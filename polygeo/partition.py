@@ -88,10 +88,10 @@ class Partition:
         mean = float(self.areas.mean())
         return float(self.areas.std() / mean) if mean > 0 else 0.0
 
-    def members(self, k: int) -> np.ndarray:
-        """Indices of the vertices of patch ``k``, shape (n_k,), int64, ascending."""
-        k = check_int(k, "k", low=0, high=self.n_patches - 1)
-        return np.flatnonzero(self.labels == k)
+    def members(self, patch: int) -> np.ndarray:
+        """Indices of the vertices of patch ``patch``, shape (n,), int64, ascending."""
+        patch = check_int(patch, "patch", low=0, high=self.n_patches - 1)
+        return np.flatnonzero(self.labels == patch)
 
     def adjacency_matrix(self) -> sp.csr_matrix:
         """Symmetric (K, K) CSR matrix of the patch graph; entry = number of shared edges."""

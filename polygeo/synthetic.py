@@ -21,12 +21,13 @@ points, returned separately as ``noisy_points`` (the exact quantities refer to `
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from .checks import check_int, check_positive
+from .checks import check_int, check_positive, check_shape
 
 __all__ = [
     "AnalyticSample",
@@ -749,6 +750,7 @@ __all__ += [
     "PATCH_FAMILIES",
     "FamilyPatches",
     "family_patches",
+    "family_grid_patches",
     "draped_sheet_mesh",
     "skirt_mesh",
     "body_mesh",
@@ -873,6 +875,20 @@ def _irregular_uv(rng: np.random.Generator, n: int, p: int, irregular: float) ->
     return uv
 
 
+def _given_uv(uv, n: int) -> np.ndarray:
+    """The caller's sample parameters as a float64 (n, P, 2) array (a copy)."""
+    a = np.asarray(uv.detach().cpu() if hasattr(uv, "detach") else uv)
+    if a.dtype.kind not in "biuf":
+        raise TypeError(f"uv: expected a real array, got dtype {a.dtype}")
+    a = a.astype(np.float64)
+    if a.ndim == 2:
+        a = np.broadcast_to(a, (n, *a.shape))
+    check_shape(a, "uv", (n, "P", 2))
+    if not np.isfinite(a).all():
+        raise ValueError(f"uv: expected finite values, got {int((~np.isfinite(a)).sum())} NaN/inf")
+    return a.copy()
+
+
 def family_patches(
     n_patches: int,
     n_points: int = 128,
@@ -883,6 +899,7 @@ def family_patches(
     max_angle: float = np.pi,
     irregular: float = 0.5,
     seed: int | np.random.Generator = 0,
+    uv: np.ndarray | None = None,
 ) -> FamilyPatches:
     """Random height-field patches, sums of the four families of thesis §5.5.1.
 
@@ -917,6 +934,10 @@ def family_patches(
         Largest share of clustered samples, in ``[0, 1]``.
     seed : int or numpy.random.Generator
         Randomness.
+    uv : array_like, shape (P, 2) or (B, P, 2), optional
+        Sample parameters to use instead of the irregular draw (for instance a grid, to
+        share one triangulation between the patches); ``n_points`` and ``irregular`` are
+        then ignored and the draws of the parameters and rotations are unchanged.
 
     Returns
     -------
@@ -926,7 +947,8 @@ def family_patches(
     Raises
     ------
     ValueError
-        On an empty or unknown family, non-positive counts or negative noise/amplitude.
+        On an empty or unknown family, non-positive counts, negative noise/amplitude or
+        ``uv`` of the wrong shape or not finite.
     TypeError
         If a count is not an integer.
     """
@@ -943,7 +965,7 @@ def family_patches(
         raise ValueError(f"irregular: expected a value in [0, 1], got {irregular}")
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     par = _family_params(rng, n, fams, amplitude)
-    uv = _irregular_uv(rng, n, p, irregular)
+    uv = _irregular_uv(rng, n, p, irregular) if uv is None else _given_uv(uv, n)
     z, g = _family_height_grad(uv, par)
     local = np.concatenate([uv, z[..., None]], axis=-1)
     nrm = np.concatenate([-g, np.ones(z.shape + (1,))], axis=-1)
@@ -954,6 +976,61 @@ def family_patches(
     if noise > 0:
         pts = pts + noise * rng.normal(size=pts.shape)
     return FamilyPatches(points=pts, normals=nrm, uv=uv, height=z, rotation=rot)
+
+
+def family_grid_patches(
+    n_patches: int, n_points: int, *, seed: int | np.random.Generator = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Family patches (see :func:`family_patches`) sampled on jittered grids, padded.
+
+    Each patch draws a grid size ``m`` in ``[m_max - 4, m_max]``, ``m_max =
+    max(4, floor(sqrt(n_points)))``, samples its height (the sum of the four families with
+    amplitude 0.5) on the ``m x m`` grid of ``[-1, 1]^2`` jittered by up to a quarter of the
+    spacing, and is rotated by a uniformly random rotation. The first ``min(m^2, n_points)``
+    slots hold the points, the rest is zero padding (the training data of the STN).
+
+    Parameters
+    ----------
+    n_patches : int
+        Number of patches ``B`` (>= 1).
+    n_points : int
+        Slots per patch ``P`` (>= 1).
+    seed : int or numpy.random.Generator
+        Randomness; the draws are, in order: family parameters, grid sizes, jitter per
+        patch, rotations.
+
+    Returns
+    -------
+    points : numpy.ndarray, shape (B, P, 3), float64
+        Samples (same units as ``u, v``), zero in the padding.
+    mask : numpy.ndarray, shape (B, P), bool
+        True for the samples, False for the padding.
+
+    Raises
+    ------
+    ValueError, TypeError
+        If a count is not a positive integer.
+    """
+    n = check_int(n_patches, "n_patches", low=1)
+    n_points = check_int(n_points, "n_points", low=1)
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    m_hi = max(4, math.isqrt(n_points))
+    par = _family_params(rng, n, PATCH_FAMILIES, 0.5)
+    ms = rng.integers(max(2, m_hi - 4), m_hi + 1, n)
+    uv = np.zeros((n, n_points, 2))
+    msk = np.zeros((n, n_points), bool)
+    for i, m in enumerate(ms):
+        t = np.linspace(-1.0, 1.0, int(m))
+        g = np.stack(np.meshgrid(t, t, indexing="ij"), -1).reshape(-1, 2)
+        g = g + rng.uniform(-0.25, 0.25, g.shape) * (2.0 / (m - 1))
+        k = min(len(g), n_points)
+        uv[i, :k] = g[:k]
+        msk[i, :k] = True
+    z, _ = _family_height_grad(uv, par)
+    local = np.concatenate([uv, z[..., None]], -1)
+    rot = _random_rotations_np(rng, n, np.pi)
+    pts = np.einsum("bij,bpj->bpi", rot, local)
+    return np.where(msk[..., None], pts, 0.0), msk
 
 
 # ---- garment-like meshes (metres) ----------------------------------------------------------

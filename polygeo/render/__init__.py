@@ -16,7 +16,7 @@ from .camera import Camera
 from .losses import iou, rgb_loss, silhouette_loss, soft_iou
 from .reference import render_reference
 from .settings import RasterSettings, sigma_from_softras
-from .soft import RenderOutput, rasterize_faces, render, render_silhouette
+from .soft import RenderOutput, project_faces, rasterize_faces, render, render_silhouette
 from .texture import checkerboard, flip_v, sample_texture
 
 __all__ = [
@@ -26,6 +26,7 @@ __all__ = [
     "render",
     "render_silhouette",
     "rasterize_faces",
+    "project_faces",
     "render_reference",
     "silhouette_loss",
     "rgb_loss",

@@ -17,10 +17,16 @@ import torch.nn.functional as tnf
 from torch.utils.checkpoint import checkpoint
 
 from ..checks import is_numpy_like
+from ._shared import (
+    bilinear_sample,
+    finish_output,
+    interp_at,
+    prepare_scene,
+    vertex_attributes,
+)
 from .camera import Camera
 from .settings import RasterSettings
-from .soft import RenderOutput, _attributes, _finish, _interp_at, _prepare
-from .texture import _sample
+from .soft import RenderOutput
 
 __all__ = ["soft_rasterize_dense", "nearest_face_dense", "render_reference"]
 
@@ -85,7 +91,7 @@ def _band(fv, q, s, attr, uvs, tex, bg):
         col = torch.einsum("bpfk,bfkc->bpfc", pb, attr.expand(fv.shape[0], *attr.shape[1:]))
     else:
         uvb = uvs.expand(fv.shape[0], *uvs.shape[1:])
-        col = _sample(tex, torch.einsum("bpfk,bfkc->bpfc", pb, uvb))
+        col = bilinear_sample(tex, torch.einsum("bpfk,bfkc->bpfc", pb, uvb))
     logit = torch.where(used, zn, torch.full_like(zn, -torch.inf))
     m = torch.maximum(logit.amax(-1), torch.full_like(logit[..., 0], s.background_depth))
     m = m.detach().unsqueeze(-1)
@@ -204,7 +210,7 @@ def nearest_face_dense(
 
 
 def render_reference(
-    verts: Any,
+    vertices: Any,
     faces: Any,
     camera: Camera,
     settings: RasterSettings | None = None,
@@ -221,7 +227,7 @@ def render_reference(
 
     Parameters
     ----------
-    verts, faces, camera, settings, colors, uvs, texture, return_depth, return_face_index, coords
+    vertices, faces, camera, settings, colors, uvs, texture, return_depth, return_face_index, coords
         As :func:`polygeo.render.render`.
     chunk_rows : int, optional
         Rows per checkpointed band (bounded memory), None for the whole image at once.
@@ -235,14 +241,14 @@ def render_reference(
     ValueError, TypeError
         As :func:`polygeo.render.render`.
     """
-    like = is_numpy_like(verts)
-    v, f, fv, cam, s, B, batched = _prepare(verts, faces, camera, settings, coords)
-    attr, uv_f, tex, C, mode = _attributes(colors, uvs, texture, v, f, B, s)
+    like = is_numpy_like(vertices)
+    v, f, fv, cam, s, B, batched = prepare_scene(vertices, faces, camera, settings, coords)
+    attr, uv_f, tex, C, mode = vertex_attributes(colors, uvs, texture, v, f, B, s)
     H, W = cam.height, cam.width
     depth = idx = None
     if s.hard:
         idx = nearest_face_dense(fv, H, W, s)
-        mask, pb, dep = _interp_at(fv, idx, H, W)
+        mask, pb, dep = interp_at(fv, idx, H, W)
         alpha = mask.to(v.dtype)
         if C == 0:
             rgb = torch.zeros((B, H, W, 0), dtype=v.dtype)
@@ -255,7 +261,7 @@ def render_reference(
                 col = (pb.unsqueeze(-1) * pa).sum(-2)
             elif uv_f is not None and uv_f.shape[1] > 0:
                 pu = uv_f.expand(B, *uv_f.shape[1:])[bidx, safe]
-                col = _sample(tex, (pb.unsqueeze(-1) * pu).sum(-2))
+                col = bilinear_sample(tex, (pb.unsqueeze(-1) * pu).sum(-2))
             else:
                 col = bg.expand(B, H, W, C)
             rgb = torch.where(mask.unsqueeze(-1), col, bg)
@@ -269,10 +275,10 @@ def render_reference(
         if return_depth or return_face_index:
             idx = nearest_face_dense(fv, H, W, s)
             if return_depth:
-                depth = _interp_at(fv, idx, H, W)[2]
+                depth = interp_at(fv, idx, H, W)[2]
     return RenderOutput(
-        rgb=_finish(rgb, batched, like),
-        alpha=_finish(alpha, batched, like),
-        depth=_finish(depth, batched, like),
-        face_index=_finish(idx, batched, like) if return_face_index else None,
+        rgb=finish_output(rgb, batched, like),
+        alpha=finish_output(alpha, batched, like),
+        depth=finish_output(depth, batched, like),
+        face_index=finish_output(idx, batched, like) if return_face_index else None,
     )

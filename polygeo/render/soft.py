@@ -35,13 +35,19 @@ import numba
 import numpy as np
 import torch
 
-from ..checks import as_tensor, check_choice, check_faces, check_finite, check_shape, is_numpy_like
+from ..checks import check_shape, is_numpy_like
 from . import _kernels as K
+from ._shared import (
+    bilinear_sample,
+    finish_output,
+    interp_at,
+    prepare_scene,
+    vertex_attributes,
+)
 from .camera import Camera
 from .settings import RasterSettings
-from .texture import _sample
 
-__all__ = ["RenderOutput", "render", "render_silhouette", "rasterize_faces"]
+__all__ = ["RenderOutput", "render", "render_silhouette", "rasterize_faces", "project_faces"]
 
 
 class RenderOutput(NamedTuple):
@@ -198,43 +204,6 @@ class _SoftRasterize(torch.autograd.Function):
 # ---------------------------------------------------------------------------- helpers
 
 
-def _interp_at(
-    fv: torch.Tensor, idx: torch.Tensor, H: int, W: int
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Perspective-correct barycentrics and depth of face ``idx`` at every pixel centre.
-
-    ``fv`` (B, F, 3, 3), ``idx`` (B, H, W) with -1 for none. Returns ``mask`` (B, H, W) bool,
-    ``pb`` (B, H, W, 3) and ``depth`` (B, H, W) (0 and uniform weights where masked).
-    """
-    B = fv.shape[0]
-    mask = idx >= 0
-    safe = idx.clamp_min(0)
-    if fv.shape[1] == 0:
-        z = torch.zeros((B, H, W), dtype=fv.dtype)
-        return mask, torch.full((B, H, W, 3), 1.0 / 3.0, dtype=fv.dtype), z
-    bidx = torch.arange(B).view(B, 1, 1).expand(B, H, W)
-    pv = fv[bidx, safe]  # (B, H, W, 3, 3)
-    qy = (torch.arange(H, dtype=fv.dtype) + 0.5).view(1, H, 1)
-    qx = (torch.arange(W, dtype=fv.dtype) + 0.5).view(1, 1, W)
-    x = pv[..., 0] - qx.unsqueeze(-1)
-    y = pv[..., 1] - qy.unsqueeze(-1)
-    e0 = x[..., 1] * y[..., 2] - x[..., 2] * y[..., 1]
-    e1 = x[..., 2] * y[..., 0] - x[..., 0] * y[..., 2]
-    e2 = x[..., 0] * y[..., 1] - x[..., 1] * y[..., 0]
-    area = e0 + e1 + e2
-    area = torch.where(mask, area, torch.ones_like(area))
-    w = torch.stack([e0, e1, e2], dim=-1) / area.unsqueeze(-1)
-    w = w.clamp(0.0, 1.0)
-    w = w / w.sum(-1, keepdim=True).clamp_min(1e-300)
-    z = torch.where(mask.unsqueeze(-1), pv[..., 2], torch.ones_like(pv[..., 2]))
-    u = w / z
-    U = u.sum(-1)
-    pb = u / U.unsqueeze(-1)
-    depth = torch.where(mask, 1.0 / U, torch.zeros_like(U))
-    pb = torch.where(mask.unsqueeze(-1), pb, torch.full_like(pb, 1.0 / 3.0))
-    return mask, pb, depth
-
-
 def _nearest(fv: torch.Tensor, s: RasterSettings, H: int, W: int, margin: float) -> torch.Tensor:
     fv_np = _np64(fv, ())
     fd, bin_off, bin_f = _setup(fv_np, s, H, W, margin)
@@ -269,106 +238,11 @@ def _shade_hard(
             col = bg.expand(B, H, W, -1)
         else:
             pu = uvs[ub.expand(B, H, W), safe]  # (B, H, W, 3, 2)
-            col = _sample(tex, (pb.unsqueeze(-1) * pu).sum(-2))
+            col = bilinear_sample(tex, (pb.unsqueeze(-1) * pu).sum(-2))
     return torch.where(mask.unsqueeze(-1), col, bg.to(col.dtype))
 
 
 # ---------------------------------------------------------------------------- public API
-
-
-def _prepare(verts, faces, camera, settings, coords):
-    if not isinstance(camera, Camera):
-        raise TypeError(f"camera: expected a polygeo.render.Camera, got {type(camera).__name__}")
-    s = RasterSettings() if settings is None else settings
-    if not isinstance(s, RasterSettings):
-        raise TypeError(f"settings: expected RasterSettings or None, got {type(s).__name__}")
-    check_choice(coords, "coords", ("world", "camera"))
-    v = as_tensor(verts, "verts")
-    check_shape(v, "verts", ("...", 3))
-    if v.ndim not in (2, 3):
-        raise ValueError(f"verts: expected shape (V, 3) or (B, V, 3), got {tuple(v.shape)}")
-    check_finite(v.detach(), "verts")
-    f = check_faces(faces, v.shape[-2])
-    cb = camera.batch_size
-    vb = v.shape[0] if v.ndim == 3 else None
-    if cb is not None and vb is not None and cb != vb:
-        raise ValueError(f"verts: expected a batch of {cb} (the camera batch), got {vb}")
-    batched = cb is not None or vb is not None
-    B = cb if cb is not None else (vb if vb is not None else 1)
-    dtype = v.dtype
-    cam = camera.to(dtype) if camera.dtype != dtype else camera
-    vb3 = v if v.ndim == 3 else v.unsqueeze(0)
-    pc = (
-        (cam.world_to_camera(v) if cb is not None else cam.world_to_camera(vb3))
-        if (coords == "world")
-        else vb3
-    )
-    if pc.ndim == 2:
-        pc = pc.unsqueeze(0)
-    pc = pc.expand(B, *pc.shape[-2:]) if pc.shape[0] != B else pc
-    z = pc[..., 2]
-    # vertices behind the near plane only belong to culled faces: keep their projection
-    # finite (and its gradient zero) by projecting a stand-in depth.
-    front = z >= s.znear
-    zs = torch.where(front, z, torch.ones_like(z))
-    pcs = torch.cat([pc[..., :2], zs.unsqueeze(-1)], dim=-1)
-    uv, _ = cam.project_camera(pcs)
-    screen = torch.cat([uv, z.unsqueeze(-1)], dim=-1)  # (B, V, 3): x, y pixels; z depth
-    fv = screen[:, f]  # (B, F, 3, 3)
-    return v, f, fv, cam, s, B, batched
-
-
-def _attributes(colors, uvs, texture, v, f, B, s):
-    if colors is not None and texture is not None:
-        raise ValueError("colors, texture: expected at most one of them, got both")
-    if texture is None and uvs is not None:
-        raise ValueError("uvs: given without a texture")
-    dtype = v.dtype
-    nv, nf = v.shape[-2], f.shape[0]
-    attr = uv_f = tex = None
-    if colors is not None:
-        c = as_tensor(colors, "colors", dtype=dtype)
-        if c.ndim == 2:
-            check_shape(c, "colors", (nv, "C"))
-            c = c.unsqueeze(0)
-        else:
-            check_shape(c, "colors", (B, nv, "C"))
-        check_finite(c.detach(), "colors")
-        attr = c[:, f]  # (Ba, F, 3, C)
-        C = c.shape[-1]
-        mode = K.MODE_VERTEX
-    elif texture is not None:
-        tex = as_tensor(texture, "texture", dtype=dtype)
-        check_shape(tex, "texture", ("Ht", "Wt", "C"))
-        if tex.numel() == 0:
-            raise ValueError(f"texture: expected a non-empty map, got shape {tuple(tex.shape)}")
-        check_finite(tex.detach(), "texture")
-        if uvs is None:
-            raise ValueError("uvs: expected (V, 2) or (F, 3, 2) UV coordinates with a texture")
-        u = as_tensor(uvs, "uvs", dtype=dtype)
-        if u.ndim == 2:
-            check_shape(u, "uvs", (nv, 2))
-            uv_f = u[f].unsqueeze(0)
-        else:
-            check_shape(u, "uvs", (nf, 3, 2))
-            uv_f = u.unsqueeze(0)
-        check_finite(u.detach(), "uvs")
-        C = tex.shape[-1]
-        mode = K.MODE_TEXTURE
-    else:
-        C = 0
-        mode = K.MODE_SILHOUETTE
-    if C:
-        s.background_for(C)  # validates the background's length
-    return attr, uv_f, tex, C, mode
-
-
-def _finish(t: torch.Tensor | None, batched: bool, like: bool):
-    if t is None:
-        return None
-    if not batched:
-        t = t[0]
-    return t.detach().cpu().numpy() if like else t
 
 
 def rasterize_faces(
@@ -427,7 +301,7 @@ def rasterize_faces(
 
 
 def render(
-    verts: Any,
+    vertices: Any,
     faces: Any,
     camera: Camera,
     settings: RasterSettings | None = None,
@@ -443,7 +317,7 @@ def render(
 
     Parameters
     ----------
-    verts : array_like or torch.Tensor, shape (V, 3) or (B, V, 3)
+    vertices : array_like or torch.Tensor, shape (V, 3) or (B, V, 3)
         Vertex positions (scene units) in world coordinates, or camera coordinates when
         ``coords="camera"``. Must be finite.
     faces : array_like or torch.Tensor, shape (F, 3), integer
@@ -463,14 +337,14 @@ def render(
     return_depth, return_face_index : bool
         Also return the hard (z-buffer) depth and face index per pixel.
     coords : {"world", "camera"}
-        Frame of ``verts``.
+        Frame of ``vertices``.
 
     Returns
     -------
     RenderOutput
         ``rgb`` ([B,] H, W, C), ``alpha`` ([B,] H, W), optionally ``depth`` and
-        ``face_index``; NumPy arrays when ``verts`` is a NumPy array, else tensors of the
-        dtype of ``verts``, differentiable w.r.t. ``verts``, ``colors``, ``uvs``,
+        ``face_index``; NumPy arrays when ``vertices`` is a NumPy array, else tensors of the
+        dtype of ``vertices``, differentiable w.r.t. ``vertices``, ``colors``, ``uvs``,
         ``texture`` and the camera's tensors.
 
     Raises
@@ -483,14 +357,14 @@ def render(
         On a camera that is not a :class:`Camera`, settings that are not
         :class:`RasterSettings` or non-integer faces.
     """
-    like = is_numpy_like(verts)
-    v, f, fv, cam, s, B, batched = _prepare(verts, faces, camera, settings, coords)
-    attr, uv_f, tex, C, mode = _attributes(colors, uvs, texture, v, f, B, s)
+    like = is_numpy_like(vertices)
+    v, f, fv, cam, s, B, batched = prepare_scene(vertices, faces, camera, settings, coords)
+    attr, uv_f, tex, C, mode = vertex_attributes(colors, uvs, texture, v, f, B, s)
     H, W = cam.height, cam.width
     depth = idx = None
     if s.hard:
         idx = _nearest(fv, s, H, W, 0.0)
-        mask, pb, dep = _interp_at(fv, idx, H, W)
+        mask, pb, dep = interp_at(fv, idx, H, W)
         alpha = mask.to(v.dtype)
         if mode == K.MODE_SILHOUETTE:
             rgb = torch.zeros((B, H, W, 0), dtype=v.dtype)
@@ -504,17 +378,17 @@ def render(
         if return_depth or return_face_index:
             idx = _nearest(fv, s, H, W, 0.0)
             if return_depth:
-                depth = _interp_at(fv, idx, H, W)[2]
+                depth = interp_at(fv, idx, H, W)[2]
     return RenderOutput(
-        rgb=_finish(rgb, batched, like),
-        alpha=_finish(alpha, batched, like),
-        depth=_finish(depth, batched, like),
-        face_index=_finish(idx, batched, like) if return_face_index else None,
+        rgb=finish_output(rgb, batched, like),
+        alpha=finish_output(alpha, batched, like),
+        depth=finish_output(depth, batched, like),
+        face_index=finish_output(idx, batched, like) if return_face_index else None,
     )
 
 
 def render_silhouette(
-    verts: Any,
+    vertices: Any,
     faces: Any,
     camera: Camera,
     settings: RasterSettings | None = None,
@@ -525,7 +399,7 @@ def render_silhouette(
 
     Parameters
     ----------
-    verts : array_like or torch.Tensor, shape (V, 3) or (B, V, 3)
+    vertices : array_like or torch.Tensor, shape (V, 3) or (B, V, 3)
         Vertex positions (scene units), world or camera coordinates (``coords``).
     faces : array_like or torch.Tensor, shape (F, 3), integer
     camera : Camera
@@ -535,11 +409,52 @@ def render_silhouette(
     Returns
     -------
     array or torch.Tensor, shape ([B,] H, W)
-        Coverage in [0, 1]; binary in hard mode. Type of ``verts``.
+        Coverage in [0, 1]; binary in hard mode. Type of ``vertices``.
 
     Raises
     ------
     ValueError, TypeError
         As :func:`render`.
     """
-    return render(verts, faces, camera, settings, coords=coords).alpha
+    return render(vertices, faces, camera, settings, coords=coords).alpha
+
+
+def project_faces(
+    vertices: Any,
+    faces: Any,
+    camera: Camera,
+    settings: RasterSettings | None = None,
+    *,
+    coords: str = "world",
+) -> Any:
+    """Screen-space face vertices of a mesh: the input of :func:`rasterize_faces`.
+
+    Parameters
+    ----------
+    vertices : array_like or torch.Tensor, shape (V, 3) or (B, V, 3)
+        Vertex positions (scene units), world or camera coordinates (``coords``). Finite.
+    faces : array_like or torch.Tensor, shape (F, 3), integer
+        Vertex indices of the triangles. ``F = 0`` is allowed.
+    camera : Camera
+        Single or batched (``B`` cameras).
+    settings : RasterSettings, optional
+        Only ``znear`` is read: vertices closer than it are projected at depth 1 (they
+        belong to faces the rasterizer culls), so the result stays finite.
+    coords : {"world", "camera"}
+        Frame of ``vertices``.
+
+    Returns
+    -------
+    array or torch.Tensor, shape ([B,] F, 3, 3)
+        Per face and corner ``(x, y, z)``: pixel coordinates (origin at the top-left image
+        corner) and camera depth (scene units; the true depth, also for culled faces).
+        Type and dtype of ``vertices``; differentiable w.r.t. ``vertices`` and the camera.
+
+    Raises
+    ------
+    ValueError, TypeError
+        As :func:`render`.
+    """
+    like = is_numpy_like(vertices)
+    _, _, fv, _, _, _, batched = prepare_scene(vertices, faces, camera, settings, coords)
+    return finish_output(fv, batched, like)

@@ -16,30 +16,9 @@ import numpy as np
 import torch
 
 from ..checks import as_tensor, check_int, check_shape, is_numpy_like, to_like
+from ._shared import bilinear_sample
 
 __all__ = ["sample_texture", "flip_v", "checkerboard"]
-
-
-def _sample(texture: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-    Ht, Wt, C = texture.shape
-    X = (uv[..., 0] * Wt - 0.5).clamp(-1.0, float(Wt))
-    Y = (uv[..., 1] * Ht - 0.5).clamp(-1.0, float(Ht))
-    xf = torch.floor(X)
-    yf = torch.floor(Y)
-    fx = (X - xf).unsqueeze(-1)
-    fy = (Y - yf).unsqueeze(-1)
-    xa = xf.long().clamp(0, Wt - 1)
-    xb = (xf.long() + 1).clamp(0, Wt - 1)
-    ya = yf.long().clamp(0, Ht - 1)
-    yb = (yf.long() + 1).clamp(0, Ht - 1)
-    flat = texture.reshape(Ht * Wt, C)
-
-    def at(yy: torch.Tensor, xx: torch.Tensor) -> torch.Tensor:
-        return flat[(yy * Wt + xx).reshape(-1)].reshape(*yy.shape, C)
-
-    top = (1 - fx) * at(ya, xa) + fx * at(ya, xb)
-    bot = (1 - fx) * at(yb, xa) + fx * at(yb, xb)
-    return (1 - fy) * top + fy * bot
 
 
 def sample_texture(texture: Any, uv: Any) -> Any:
@@ -72,7 +51,7 @@ def sample_texture(texture: Any, uv: Any) -> Any:
         raise ValueError(f"texture: expected a non-empty map, got shape {tuple(tex.shape)}")
     u = as_tensor(uv, "uv", dtype=tex.dtype)
     check_shape(u, "uv", ("...", 2))
-    return to_like(_sample(tex, u), like)
+    return to_like(bilinear_sample(tex, u), like)
 
 
 def flip_v(uv: Any) -> Any:

@@ -109,7 +109,7 @@ def test_mesh_k_ring_against_bfs():
     n = 13  # vertex 12 unreferenced
     adj = nb.vertex_adjacency(f, n).toarray() > 0
     for k in (1, 2, 3):
-        ring = nb.mesh_k_ring(f, n, k)
+        ring = nb.mesh_k_ring(f, n, rings=k)
         for v in range(n):
             dist = np.full(n, -1)
             dist[v] = 0
@@ -150,7 +150,7 @@ def test_mesh_k_ring_exclude_self_and_torch():
         (lambda: nb.radius_neighbors(np.zeros((5, 3)), -1.0), ValueError),
         (lambda: nb.radius_neighbors(np.zeros((5, 3)), 1.0, max_neighbors=0), ValueError),
         (lambda: nb.mesh_k_ring(np.array([[0, 1, 5]]), 3), ValueError),
-        (lambda: nb.mesh_k_ring(np.array([[0, 1, 2]]), 3, k=0), ValueError),
+        (lambda: nb.mesh_k_ring(np.array([[0, 1, 2]]), 3, rings=0), ValueError),
         (lambda: nb.mesh_k_ring(np.array([[0.0, 1, 2]]), 3), TypeError),
         (lambda: nb.vertex_adjacency(np.array([[0, 1]]), 3), ValueError),
         (lambda: nb.vertex_adjacency(np.array([[0, -1, 2]]), 3), ValueError),

@@ -204,5 +204,5 @@ def test_bad_input():
     with pytest.raises(ValueError, match="area"):
         default_n_patches(-1.0)
     part = partition_mesh(v, f, 4)
-    with pytest.raises(ValueError, match="k"):
-        part.members(part.n_patches)
+    with pytest.raises(ValueError, match="patch"):
+        part.members(patch=part.n_patches)

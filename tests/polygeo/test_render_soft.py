@@ -11,6 +11,7 @@ from polygeo.render import (
     RasterSettings,
     checkerboard,
     iou,
+    project_faces,
     rasterize_faces,
     render,
     render_reference,
@@ -441,9 +442,9 @@ def _args():
 @pytest.mark.parametrize(
     "change, exc, match",
     [
-        (dict(verts=np.zeros((4, 2))), ValueError, "verts"),
-        (dict(verts=np.zeros((1, 2, 9, 3))), ValueError, "verts"),
-        (dict(verts="nan"), ValueError, "verts"),
+        (dict(vertices=np.zeros((4, 2))), ValueError, "vertices"),
+        (dict(vertices=np.zeros((1, 2, 9, 3))), ValueError, "vertices"),
+        (dict(vertices="nan"), ValueError, "vertices"),
         (dict(faces=np.array([[0, 1, 99]])), ValueError, "faces"),
         (dict(faces=np.array([[0, -1, 2]])), ValueError, "faces"),
         (dict(faces=np.array([[0.0, 1.0, 2.0]])), TypeError, "faces"),
@@ -464,18 +465,18 @@ def _args():
 )
 def test_render_validation(change, exc, match):
     verts, faces, uvs, cam = _args()
-    args = dict(verts=verts, faces=faces, camera=cam, settings=None)
+    args = dict(vertices=verts, faces=faces, camera=cam, settings=None)
     kw = {}
     for k, v in change.items():
         if k in args:
             args[k] = v
         else:
             kw[k] = uvs if (isinstance(v, str) and v == "ok") else v
-    if isinstance(args["verts"], str):
-        args["verts"] = verts.copy()
-        args["verts"][2, 1] = np.nan
+    if isinstance(args["vertices"], str):
+        args["vertices"] = verts.copy()
+        args["vertices"][2, 1] = np.nan
     with pytest.raises(exc, match=match):
-        render(args["verts"], args["faces"], args["camera"], args["settings"], **kw)
+        render(**args, **kw)
 
 
 def test_batch_mismatch_is_an_error():
@@ -574,3 +575,34 @@ def test_tile_size_does_not_change_the_result(rng):
     for out, g in zip(outs[1:], grads[1:]):
         assert torch.equal(out.alpha, outs[0].alpha) and torch.equal(out.rgb, outs[0].rgb)
         torch.testing.assert_close(g, grads[0], rtol=1e-12, atol=1e-12)
+
+
+# ------------------------------------------------------------------ project_faces
+
+
+def test_project_faces_is_the_pinhole_projection():
+    cam = Camera(K=[[30.0, 0, 16.0], [0, 30.0, 12.0], [0, 0, 1]], width=32, height=24)
+    v = np.array([[-1.0, -0.5, 2.0], [1.0, -0.5, 4.0], [0.0, 1.0, 3.0], [0.5, 0.5, 0.001]])
+    f = np.array([[0, 1, 2], [2, 1, 3]])
+    fv = project_faces(v, f, cam, coords="camera")
+    assert isinstance(fv, np.ndarray) and fv.shape == (2, 3, 3)
+    want = np.stack([30 * v[:, 0] / v[:, 2] + 16, 30 * v[:, 1] / v[:, 2] + 12, v[:, 2]], -1)
+    np.testing.assert_allclose(fv[0], want[[0, 1, 2]], rtol=1e-12)
+    # the vertex in front of the near plane keeps its depth, its projection stays finite
+    assert np.isfinite(fv).all() and fv[1, 2, 2] == 0.001
+    # batched torch input: torch out, differentiable, equal per item
+    vt = torch.from_numpy(np.stack([v, v + [0.1, 0.0, 0.5]])).requires_grad_(True)
+    fb = project_faces(vt, f, cam, coords="camera")
+    assert fb.shape == (2, 2, 3, 3)
+    np.testing.assert_allclose(fb[0].detach().numpy(), fv, rtol=1e-12)
+    fb[..., :2].sum().backward()
+    assert torch.isfinite(vt.grad).all() and vt.grad.abs().sum() > 0
+
+
+def test_project_faces_validation():
+    cam = Camera(K=[[30.0, 0, 16.0], [0, 30.0, 12.0], [0, 0, 1]], width=32, height=24)
+    v = np.ones((3, 3))
+    with pytest.raises(ValueError, match="faces"):
+        project_faces(v, [[0, 1, 3]], cam)
+    with pytest.raises(TypeError, match="camera"):
+        project_faces(v, [[0, 1, 2]], "camera")

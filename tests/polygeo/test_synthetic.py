@@ -182,3 +182,48 @@ def test_validators():
     with pytest.raises(ValueError, match="subdivisions"):
         synthetic.sphere_mesh(9)
     assert len(synthetic.sphere(0)) == 0
+
+
+def test_family_patches_on_given_uv_is_the_family_surface():
+    # trig family only, amplitude a, no rotation: the height is a cos(theta r) exactly
+    grid = synthetic.plane_mesh(9)
+    uv = grid.points[:, :2]
+    f = synthetic.family_patches(3, families=("trig",), uv=uv, max_angle=0.0, seed=4)
+    assert f.points.shape == (3, 81, 3)
+    np.testing.assert_array_equal(f.points[..., :2], np.broadcast_to(uv, (3, 81, 2)))
+    r = np.linalg.norm(uv, axis=1)
+    # recover (a, theta) of each patch from r = 0 and r = 0.25 (theta r <= pi/2 there)
+    i0, i1 = np.argmin(r), int(np.argmin(np.abs(r - 0.25)))
+    for b in range(3):
+        z = f.points[b, :, 2]
+        a = z[i0]
+        assert 0 < abs(a) <= 0.5
+        theta = np.arccos(z[i1] / a) / r[i1]
+        assert np.pi <= theta <= 2 * np.pi
+        np.testing.assert_allclose(z, a * np.cos(theta * r), atol=1e-12)
+
+
+def test_family_patches_uv_validation():
+    with pytest.raises(ValueError, match="uv"):
+        synthetic.family_patches(2, uv=np.zeros((5, 3)))
+    with pytest.raises(ValueError, match="uv"):
+        synthetic.family_patches(2, uv=np.zeros((3, 5, 2)))  # 3 sets for 2 patches
+    with pytest.raises(ValueError, match="uv"):
+        synthetic.family_patches(2, uv=np.full((5, 2), np.nan))
+    with pytest.raises(TypeError, match="uv"):
+        synthetic.family_patches(2, uv=np.array([["a", "b"]]))
+
+
+def test_family_grid_patches_padding_and_grid():
+    pts, mask = synthetic.family_grid_patches(6, 40, seed=1)
+    assert pts.shape == (6, 40, 3) and mask.shape == (6, 40)
+    counts = mask.sum(1)
+    # m in [2, 6] (m_max = 6): min(m^2, 40) points first, zero padding after
+    assert set(counts) <= {4, 9, 16, 25, 36}
+    for b in range(6):
+        assert mask[b, : counts[b]].all() and not mask[b, counts[b] :].any()
+        assert (pts[b, counts[b] :] == 0).all()
+    again, _ = synthetic.family_grid_patches(6, 40, seed=1)
+    np.testing.assert_array_equal(pts, again)
+    with pytest.raises(ValueError, match="n_points"):
+        synthetic.family_grid_patches(2, 0)
