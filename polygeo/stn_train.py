@@ -203,31 +203,10 @@ def mesh_patch_pool(seeds: tuple[int, ...] = (0,), *, min_points: int = 20) -> l
 def _grid_family_points(
     n: int, n_points: int, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Family sums on jittered m x m grids of [-1, 1]^2, randomly rotated.
-
-    ``m`` is drawn in ``[m_max - 4, m_max]`` with ``m_max = floor(sqrt(n_points))``; the
-    ``m^2`` points come first, the rest is padding. Returns points ``(n, n_points, 3)`` and
-    the mask ``(n, n_points)``.
-    """
+    """Family sums on jittered grids, padded: :func:`polygeo.synthetic.family_grid_patches`."""
     from . import synthetic
 
-    m_hi = max(4, math.isqrt(n_points))
-    par = synthetic._family_params(rng, n, synthetic.PATCH_FAMILIES, 0.5)
-    ms = rng.integers(max(2, m_hi - 4), m_hi + 1, n)
-    uv = np.zeros((n, n_points, 2))
-    msk = np.zeros((n, n_points), bool)
-    for i, m in enumerate(ms):
-        t = np.linspace(-1.0, 1.0, int(m))
-        g = np.stack(np.meshgrid(t, t, indexing="ij"), -1).reshape(-1, 2)
-        g = g + rng.uniform(-0.25, 0.25, g.shape) * (2.0 / (m - 1))
-        k = min(len(g), n_points)
-        uv[i, :k] = g[:k]
-        msk[i, :k] = True
-    z, _ = synthetic._family_height_grad(uv, par)
-    local = np.concatenate([uv, z[..., None]], -1)
-    rot = synthetic._random_rotations_np(rng, n, np.pi)
-    pts = np.einsum("bij,bpj->bpi", rot, local)
-    return np.where(msk[..., None], pts, 0.0), msk
+    return synthetic.family_grid_patches(n, n_points, seed=rng)
 
 
 def training_batch(

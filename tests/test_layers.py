@@ -20,15 +20,11 @@ ROOT = Path(__file__).resolve().parents[1]
 CORE = "polygeo"
 
 #: Known uses being removed by the restructuring of issue 15 (file, private name): the
-#: estimate stages (benchmarks/bm_jets.py times them) and the split of stn.py. Delete an
-#: entry when its use is gone; nothing may be added here.
+#: estimate stages, which benchmarks/bm_jets.py times one by one. Delete an entry when its
+#: use is gone; nothing may be added here.
 PENDING = {
     ("benchmarks/bm_jets.py", "polygeo.estimate._Local"),
     ("benchmarks/bm_jets.py", "polygeo.estimate._geometry"),
-    ("polygeo/patches.py", "polygeo.stn._canonicalize"),
-    ("polygeo/stn.py", "polygeo.synthetic._family_params"),
-    ("polygeo/stn.py", "polygeo.synthetic._family_height_grad"),
-    ("polygeo/stn.py", "polygeo.synthetic._random_rotations_np"),
 }
 
 
