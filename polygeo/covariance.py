@@ -11,7 +11,10 @@ A rigid motion ``y = R x + T`` maps ``C_i`` to ``R C_i R^T``, which keeps its si
 paper eq. (4), (15)) turns this into an inextensibility loss: the template's singular values
 ``sigma_j`` must remain roots of the deformed covariance's characteristic polynomial:
 
-    L_inext = k_i sum_vertices sum_{j=1..3} |det(C - k_ext sigma_j I)|.
+    L_inext = k_i sum_vertices sum_{j=1..3} |det(C - k_ext sigma_j I)|,
+
+with the extension factor ``k_ext`` (argument ``extension``) and the weight ``k_i``
+(argument ``weight``).
 
 All functions are differentiable in torch (float64 passes ``gradcheck``) and accept a leading
 batch ``(..., N, 3)`` of point sets sharing one neighbourhood structure.
@@ -134,21 +137,21 @@ def _det3(a: torch.Tensor) -> torch.Tensor:
 def inextensibility_residual(
     cov: Any,
     template_sigma: Any,
-    k_ext: Any = 1.0,
+    extension: Any = 1.0,
     *,
     weight: float = 1.0,
     reduction: str = "sum",
 ) -> Any:
-    """GAPS inextensibility residual, thesis eq. (44): ``k_i sum_v sum_j |det(C - k_ext s_j I)|``.
+    """GAPS inextensibility residual, thesis eq. (44): ``k_i sum_v sum_j |det(C - e s_j I)|``.
 
     ``C`` is the covariance of the deformed garment's neighbourhood of a vertex (from
     :func:`vertex_covariance` on the current vertices), ``sigma_j`` (j = 1..3) are the singular
     values of the covariance of the same neighbourhood on the undeformed template (precomputed
-    once with :func:`singular_values`), and ``k_ext`` is the allowed extension: 1 demands
-    inextensibility (each ``sigma_j`` must be an eigenvalue of ``C``, which holds for any rigid
-    motion of the neighbourhood), ``k_ext > 1`` lets the neighbourhood stretch (GAPS raises it
-    progressively, eq. (45), where the garment collides with the body). ``k_i`` (``weight``)
-    balances the loss against the others.
+    once with :func:`singular_values`), and ``e = extension`` (the thesis' ``k_ext``) is the
+    allowed extension: 1 demands inextensibility (each ``sigma_j`` must be an eigenvalue of
+    ``C``, which holds for any rigid motion of the neighbourhood), ``extension > 1`` lets the
+    neighbourhood stretch (GAPS raises it progressively, eq. (45), where the garment collides
+    with the body). ``k_i`` (``weight``) balances the loss against the others.
 
     Parameters
     ----------
@@ -156,8 +159,8 @@ def inextensibility_residual(
         Covariances ``C`` of the deformed neighbourhoods (unit L^2).
     template_sigma : (N, 3) or (..., N, 3) float
         Template singular values ``sigma_j`` (unit L^2).
-    k_ext : float or (..., N) float
-        Extension factor(s), finite and >= 0, broadcast per vertex.
+    extension : float or (..., N) float
+        Extension factor(s) ``k_ext``, finite and >= 0 (dimensionless), broadcast per vertex.
     weight : float
         The balancing factor ``k_i``.
     reduction : {"sum", "none"}
@@ -172,7 +175,7 @@ def inextensibility_residual(
     Raises
     ------
     ValueError
-        Bad shapes, non-finite values, negative ``k_ext`` or an unknown reduction.
+        Bad shapes, non-finite values, negative ``extension`` or an unknown reduction.
     TypeError
         Non-numeric input.
     """
@@ -184,16 +187,16 @@ def inextensibility_residual(
     s = as_tensor(template_sigma, "template_sigma", dtype=c.dtype)
     check_shape(s, "template_sigma", ("...", c.shape[-3], 3))
     check_finite(s, "template_sigma")
-    k = as_tensor(k_ext, "k_ext", dtype=c.dtype)
-    check_finite(k, "k_ext")
+    k = as_tensor(extension, "extension", dtype=c.dtype)
+    check_finite(k, "extension")
     if bool((k < 0).any()):
-        raise ValueError(f"k_ext: expected values >= 0, got min {float(k.min())}")
+        raise ValueError(f"extension: expected values >= 0, got min {float(k.min())}")
     if k.ndim > 0:
         try:
             torch.broadcast_shapes(k.shape, c.shape[:-2])
         except RuntimeError as exc:
             raise ValueError(
-                f"k_ext: expected a scalar or shape broadcastable to {tuple(c.shape[:-2])}, "
+                f"extension: expected a scalar or shape broadcastable to {tuple(c.shape[:-2])}, "
                 f"got {tuple(k.shape)}"
             ) from exc
     eye = torch.eye(3, dtype=c.dtype)

@@ -43,9 +43,11 @@ def test_residual_zero_under_rigid_motion_positive_under_stretch(ring_mesh):
     stretched = v * 1.1
     c_st = cv.vertex_covariance(stretched, idx, mask)
     assert cv.inextensibility_residual(c_st, s) > 1e-3 * scale * len(v)
-    # a uniform stretch by a scales C by a^2: k_ext = a^2 makes it admissible again
+    # a uniform stretch by a scales C by a^2: extension = a^2 makes it admissible again
     np.testing.assert_allclose(
-        cv.inextensibility_residual(c_st, s, k_ext=1.21, reduction="none"), 0, atol=1e-10 * scale
+        cv.inextensibility_residual(c_st, s, extension=1.21, reduction="none"),
+        0,
+        atol=1e-10 * scale,
     )
 
 
@@ -61,7 +63,7 @@ def test_residual_equals_product_of_eigenvalue_gaps(rng):
     assert cv.inextensibility_residual(c, sig, k, weight=2.0) == pytest.approx(want.sum())
 
 
-def test_batched_points_and_per_vertex_k_ext(ring_mesh, rng):
+def test_batched_points_and_per_vertex_extension(ring_mesh, rng):
     v, idx, mask = ring_mesh
     vb = np.stack([v, 1.05 * v])
     c = cv.vertex_covariance(vb, idx, mask)
@@ -134,3 +136,9 @@ def test_torch_in_torch_out(ring_mesh):
 def test_validators(call, exc):
     with pytest.raises(exc):
         call()
+
+
+@pytest.mark.parametrize("extension", [-1.0, np.ones(3), np.nan])
+def test_extension_validation_names_the_argument(extension):
+    with pytest.raises(ValueError, match="extension"):
+        cv.inextensibility_residual(np.zeros((4, 3, 3)), np.zeros((4, 3)), extension=extension)
