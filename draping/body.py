@@ -45,6 +45,8 @@ __all__ = [
     "linear_blend_skinning",
     "skinning_jacobian",
     "default_asset_path",
+    "expand_batch",
+    "pose_inputs",
 ]
 
 ANNY_PHENOTYPES = ("gender", "age", "muscle", "weight", "height", "proportions")
@@ -328,7 +330,8 @@ def skinning_jacobian(weights, indices, transforms) -> torch.Tensor:
 # ----------------------------------------------------------------------------------------
 
 
-def _pose_inputs(rotations, translation, n_bones, dtype):
+def pose_inputs(rotations, translation, n_bones, dtype):
+    """Validated ``(B, J, 3)`` rotations and ``(B or 1, 3)`` translation (or None)."""
     if rotations is None:
         rotations = torch.zeros(1, n_bones, 3, dtype=dtype)
     r = as_tensor(rotations, "rotations", dtype=dtype)
@@ -351,7 +354,8 @@ def _pose_inputs(rotations, translation, n_bones, dtype):
     return r, t
 
 
-def _batch(n: int, *ts):
+def expand_batch(n: int, *ts):
+    """Expand tensors (or None) of leading size 1 or ``n`` to ``n``."""
     return [None if t is None else t.expand(n, *t.shape[1:]) for t in ts]
 
 
@@ -615,14 +619,14 @@ class AnnyBody:
         ValueError
             On wrong shapes, NaN, or phenotypes outside ``[0, 1]``.
         """
-        r, t = _pose_inputs(rotations, translation, self.num_bones, self.dtype)
+        r, t = pose_inputs(rotations, translation, self.num_bones, self.dtype)
         rv, rj = self.rest(shape)
         n = max(r.shape[0], rv.shape[0])
         if rv.shape[0] not in (1, n) or r.shape[0] not in (1, n):
             raise ValueError(
                 f"shape: batch {rv.shape[0]} does not match rotations' batch {r.shape[0]}"
             )
-        r, t, rv, rj = _batch(n, r, t, rv, rj)
+        r, t, rv, rj = expand_batch(n, r, t, rv, rj)
         R = axis_angle_to_matrix(r)
         transforms, frames = forward_kinematics(R, rj, self.parents, t, self.levels)
         verts = linear_blend_skinning(rv, self.skin_weights, self.skin_indices, transforms)
