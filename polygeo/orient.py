@@ -30,7 +30,7 @@ import scipy.sparse as sp
 import torch
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
 
-from .checks import as_tensor, check_int, check_shape, is_numpy_like, to_like
+from .checks import as_tensor, check_faces, check_int, check_shape, is_numpy_like, to_like
 from .mesh import orient_faces, vertex_normals
 from .neighbors import knn
 
@@ -139,13 +139,7 @@ def mesh_reference_normals(vertices: Any, faces: Any) -> tuple[Any, Any]:
     check_shape(v, "vertices", ("N", 3))
     fin = torch.isfinite(v).all(-1)
     vf = torch.where(fin[:, None], v, torch.zeros_like(v))
-    f = as_tensor(faces, "faces", floating=False)
-    if f.is_floating_point():
-        raise TypeError(f"faces: expected an integer array, got dtype {f.dtype}")
-    check_shape(f, "faces", ("F", 3))
-    f = f.to(torch.int64)
-    if f.numel() and (int(f.min()) < 0 or int(f.max()) >= v.shape[0]):
-        raise ValueError(f"faces: expected indices in [0, {v.shape[0] - 1}]")
+    f = check_faces(faces, v.shape[0])
     good_face = fin[f].all(-1) if f.numel() else torch.zeros(0, dtype=torch.bool)
     fk = f[good_face].numpy()
     oriented = orient_faces(fk, vf.detach().cpu().to(torch.float64).numpy())

@@ -6,7 +6,8 @@ origin at the top-left pixel corner, pixel ``(i, j)`` centred at ``(j + 0.5, i +
 torch and return the input's type.
 
 Main entry points: :class:`Camera`, :class:`RasterSettings`, :func:`render`,
-:func:`render_silhouette`, the losses :func:`silhouette_loss`, :func:`rgb_loss`,
+:func:`render_silhouette`, :func:`project_faces` (screen-space faces for
+:func:`rasterize_faces`), the losses :func:`silhouette_loss`, :func:`rgb_loss`,
 :func:`soft_iou`, and the dense oracle :func:`render_reference`.
 """
 
