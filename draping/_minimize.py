@@ -1,0 +1,336 @@
+"""Minimisers of one frame's cloth energy for :mod:`draping.reference` (NumPy, float64, SI).
+
+The objective is the energy of :func:`draping.reference.frame_energy` evaluated with the fused
+kernels of :mod:`draping.physics.fused` (membrane, bending) plus closed forms for gravity,
+inertia and the collision penalty on fixed tangent planes. Three minimisers share it:
+
+- ``newton``: projected Newton. Element Hessians made positive semi-definite
+  (:mod:`draping.physics.fused`), collision Hessians ``6 k_c p n n^T`` and the mass term are
+  assembled into a sparse matrix of 3x3 blocks on a pattern built once; the Newton system is
+  solved by conjugate gradients preconditioned with the factorised Laplacian below, to a
+  relative residual ``min(0.5, sqrt(|g| / |M g|))`` (inexact Newton; the exact, indefinite
+  membrane Hessian with a negative-curvature exit was tried and was not faster on the
+  sheet-over-sphere drapes); backtracking line search.
+- ``pqn``: L-BFGS whose initial inverse Hessian is that factorised Laplacian (Liu et al. 2017).
+- ``lbfgs``: plain L-BFGS with the usual scaled identity.
+
+Every accepted step lowers the energy (Armijo condition).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from .physics import RestState, fused
+
+__all__: list[str] = []
+
+
+class Structure(NamedTuple):
+    """Per-garment constants of the objective, computed once (:func:`structure`)."""
+
+    faces: np.ndarray  # (F, 3) int64
+    dm_inv: np.ndarray  # (F, 2, 2)
+    area: np.ndarray  # (F,) m^2
+    quads: np.ndarray  # (H, 4) int64
+    weight: np.ndarray  # (H,)
+    mass: np.ndarray  # (V,) kg
+    edges: np.ndarray  # (E, 2)
+    edge_length: np.ndarray  # (E,) m
+    block_rows: np.ndarray  # (NB,) vertex row of each 3x3 block, CSR order
+    block_cols: np.ndarray  # (NB,)
+    indptr: np.ndarray  # (V + 1,)
+    tri_map: np.ndarray  # (F, 3, 3) block index of corner pairs
+    hinge_map: np.ndarray  # (H, 4, 4)
+    diag_map: np.ndarray  # (V,)
+
+
+def structure(rest: RestState) -> Structure:
+    """Arrays and the sparse block pattern of a garment (numpy float64)."""
+    f = rest.faces.numpy().astype(np.int64)
+    quads = fused.hinge_quads(f, rest.hinges.edges, rest.hinges.faces)
+    n = rest.n_vertices
+    pairs_t = np.stack(np.broadcast_arrays(f[:, :, None], f[:, None, :]), -1)  # (F,3,3,2)
+    pairs_h = np.stack(np.broadcast_arrays(quads[:, :, None], quads[:, None, :]), -1)
+    keys = np.concatenate(
+        [
+            (pairs_t[..., 0] * n + pairs_t[..., 1]).ravel(),
+            (pairs_h[..., 0] * n + pairs_h[..., 1]).ravel(),
+            np.arange(n) * (n + 1),
+        ]
+    )
+    uniq = np.unique(keys)
+    rows, cols = uniq // n, uniq % n
+    indptr = np.searchsorted(rows, np.arange(n + 1))
+    tri_map = np.searchsorted(uniq, pairs_t[..., 0] * n + pairs_t[..., 1])
+    hinge_map = np.searchsorted(uniq, pairs_h[..., 0] * n + pairs_h[..., 1])
+    diag_map = np.searchsorted(uniq, np.arange(n) * (n + 1))
+    return Structure(
+        f,
+        rest.dm_inv.detach().double().numpy(),
+        rest.area.detach().double().numpy(),
+        quads,
+        rest.hinge_weight.detach().double().numpy(),
+        rest.mass.detach().double().numpy(),
+        rest.edges.numpy(),
+        rest.edge_length.detach().double().numpy(),
+        rows,
+        cols,
+        indptr,
+        tri_map,
+        hinge_map,
+        diag_map,
+    )
+
+
+class Objective(NamedTuple):
+    """One frame's energy: constants, optional previous state and tangent planes (SI)."""
+
+    st: Structure
+    rest: RestState
+    gravity: np.ndarray  # (3,) m/s^2
+    bending: bool
+    k_c: float  # J/m^3
+    eps: float  # m
+    x_hat: np.ndarray | None  # (V, 3) x_prev + dt v_prev, dynamic frames only
+    dt: float | None
+    anchor: np.ndarray | None  # (V, 3)
+    normal: np.ndarray | None  # (V, 3)
+    free: np.ndarray  # (V,) bool
+
+
+def evaluate(
+    ob: Objective, x: np.ndarray, want_grad: bool = True, want_hess: bool = False
+) -> tuple[float, np.ndarray | None, sp.bsr_matrix | None]:
+    """Energy (J), gradient (V, 3) with pinned rows zeroed, and the PSD Hessian (BSR)."""
+    st, m = ob.st, ob.rest.material
+    blocks = np.zeros((st.block_rows.shape[0], 3, 3)) if want_hess else None
+    e, g, _ = fused.membrane(
+        x,
+        st.faces,
+        st.dm_inv,
+        st.area,
+        m.thickness,
+        m.lame_mu,
+        m.lame_lambda,
+        want_hess,
+        blocks,
+        st.tri_map,
+    )
+    if ob.bending:
+        eb, gb, _ = fused.bending(
+            x, st.quads, st.weight, m.bending_stiffness, want_hess, blocks, st.hinge_map
+        )
+        e += eb
+        g += gb
+    e -= float((st.mass * (x @ ob.gravity)).sum())
+    g -= st.mass[:, None] * ob.gravity
+    diag = np.zeros((x.shape[0], 3, 3)) if want_hess else None
+    if ob.anchor is not None:
+        d = ((x - ob.anchor) * ob.normal).sum(1)
+        pen = np.maximum(ob.eps - d, 0.0)
+        e += ob.k_c * float((pen**3).sum())
+        g -= (3.0 * ob.k_c * pen**2)[:, None] * ob.normal
+        if want_hess:
+            diag += (6.0 * ob.k_c * pen)[:, None, None] * (
+                ob.normal[:, :, None] * ob.normal[:, None, :]
+            )
+    if ob.x_hat is not None:
+        w = st.mass / (ob.dt * ob.dt)
+        dx = x - ob.x_hat
+        e += 0.5 * float((w * (dx * dx).sum(1)).sum())
+        g += w[:, None] * dx
+        if want_hess:
+            diag += w[:, None, None] * np.eye(3)
+    g[~ob.free] = 0.0
+    if not want_hess:
+        return e, g, None
+    blocks[st.diag_map] += diag
+    return e, g, _assemble(ob, blocks)
+
+
+def _assemble(ob: Objective, data: np.ndarray) -> sp.bsr_matrix:
+    st = ob.st
+    pinned = ~ob.free
+    if pinned.any():
+        kill = pinned[st.block_rows] | pinned[st.block_cols]
+        data[kill] = 0.0
+        data[st.diag_map[pinned]] = np.eye(3)
+    n = ob.free.shape[0]
+    return sp.bsr_matrix((data, st.block_cols, st.indptr), shape=(3 * n, 3 * n))
+
+
+def laplacian_factor(ob: Objective, dt: float) -> Callable[[np.ndarray], np.ndarray]:
+    """Factorised ``M / dt^2 + K`` (V x V, shared by x, y, z) as a solve ``(V, 3) -> (V, 3)``.
+
+    ``K`` is the graph Laplacian with edge weights ``(2 mu + lambda) h (A_0 + A_1) / (3 l^2)``
+    (the membrane's stiffness along each edge at rest, blind to the garment's orientation).
+    Pinned vertices get identity rows.
+    """
+    st, m = ob.st, ob.rest.material
+    n = st.mass.shape[0]
+    e = st.edges
+    he = np.sort(st.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    pos = np.searchsorted(e[:, 0] * n + e[:, 1], he[:, 0] * n + he[:, 1])
+    a_e = np.bincount(pos, weights=np.repeat(st.area, 3), minlength=e.shape[0])
+    w = (2 * m.lame_mu + m.lame_lambda) * m.thickness * a_e / (3.0 * st.edge_length**2)
+    ij = np.concatenate([e[:, 0], e[:, 1]])
+    ji = np.concatenate([e[:, 1], e[:, 0]])
+    lap = sp.coo_matrix((np.concatenate([-w, -w]), (ij, ji)), shape=(n, n)).tocsr()
+    a = lap - sp.diags(np.asarray(lap.sum(1)).ravel()) + sp.diags(st.mass / dt**2)
+    if not ob.free.all():
+        keep = sp.diags(ob.free.astype(np.float64))
+        a = keep @ a @ keep + sp.diags((~ob.free).astype(np.float64))
+    lu = spla.splu(a.tocsc())
+    return lambda r: lu.solve(np.ascontiguousarray(r.reshape(n, 3)))
+
+
+class Outcome(NamedTuple):
+    x: np.ndarray
+    energy: float
+    grad_norm: float
+    iterations: int
+    trace: list
+
+
+def _line_search(
+    ob: Objective, x: np.ndarray, e: float, g: np.ndarray, d: np.ndarray
+) -> tuple[float, np.ndarray, float] | None:
+    slope = float((d * g).sum())
+    if slope >= 0:
+        return None
+    step = 1.0
+    while step > 1e-12:
+        x_new = x + step * d
+        e_new, _, _ = evaluate(ob, x_new, want_grad=False)
+        if e_new <= e + 1e-4 * step * slope:
+            return step, x_new, e_new
+        step *= 0.5
+    return None
+
+
+def _pcg(
+    h: sp.bsr_matrix,
+    b: np.ndarray,
+    precond: Callable[[np.ndarray], np.ndarray],
+    rtol: float,
+    maxiter: int,
+) -> np.ndarray:
+    """Preconditioned CG on ``h d = b``, stopped at ``|r| <= rtol |b|`` or negative curvature.
+
+    At negative curvature (Steihaug) the iterate so far is returned, or the preconditioned
+    ``b`` at the first step.
+    """
+    x = np.zeros_like(b)
+    r = b.copy()
+    z = precond(r)
+    p = z.copy()
+    rz = float(r @ z)
+    bn = float(np.linalg.norm(b))
+    for it in range(maxiter):
+        hp = h @ p
+        curv = float(p @ hp)
+        if curv <= 0:
+            return z if it == 0 else x
+        a = rz / curv
+        x += a * p
+        r -= a * hp
+        if float(np.linalg.norm(r)) <= rtol * bn:
+            break
+        z = precond(r)
+        rz_new = float(r @ z)
+        p = z + (rz_new / rz) * p
+        rz = rz_new
+    return x
+
+
+def newton(
+    ob: Objective,
+    x: np.ndarray,
+    tol_abs: float,
+    max_iter: int,
+    precond: Callable[[np.ndarray], np.ndarray],
+    weight: float,
+) -> Outcome:
+    """Projected Newton with PCG inner solves (module docstring); stops at ``|g| <= tol_abs``."""
+    trace = []
+    e, g, h = evaluate(ob, x, want_hess=True)
+    it = 0
+    n = x.shape[0]
+    fm = ob.free[:, None].astype(np.float64)
+    while it < max_iter:
+        gn = float(np.linalg.norm(g))
+        if gn <= tol_abs:
+            break
+        forcing = min(0.5, np.sqrt(gn / weight))
+        d = _pcg(h, -g.ravel(), lambda r: (precond(r) * fm).ravel(), forcing, 200)
+        d = d.reshape(n, 3) * fm
+        ls = _line_search(ob, x, e, g, d)
+        if ls is None:  # CG direction failed: fall back to the preconditioned gradient
+            ls = _line_search(ob, x, e, g, -precond(g) * fm)
+            if ls is None:
+                break
+        _, x, _ = ls
+        e, g, h = evaluate(ob, x, want_hess=True)
+        trace.append(e)
+        it += 1
+    return Outcome(x, e, float(np.linalg.norm(g)), it, trace)
+
+
+def quasi_newton(
+    ob: Objective,
+    x: np.ndarray,
+    tol_abs: float,
+    max_iter: int,
+    history: int,
+    precond: Callable[[np.ndarray], np.ndarray] | None,
+) -> Outcome:
+    """L-BFGS, preconditioned (``pqn``) or with a scaled identity (``lbfgs``)."""
+    trace = []
+    fm = ob.free[:, None].astype(np.float64)
+    e, g, _ = evaluate(ob, x)
+    s_hist: list = []
+    y_hist: list = []
+    it = 0
+    while it < max_iter and float(np.linalg.norm(g)) > tol_abs:
+        q = g.copy()
+        alphas = []
+        for s, y in zip(reversed(s_hist), reversed(y_hist), strict=True):
+            rho = 1.0 / float((y * s).sum())
+            a = rho * float((s * q).sum())
+            alphas.append((a, rho))
+            q -= a * y
+        if precond is not None:
+            r = precond(q) * fm
+        elif y_hist:
+            r = q * (float((s_hist[-1] * y_hist[-1]).sum()) / float((y_hist[-1] ** 2).sum()))
+        else:
+            r = q * (1e-3 / max(float(np.abs(g).max()), 1e-300))  # first step: 1 mm at most
+        for (s, y), (a, rho) in zip(
+            zip(s_hist, y_hist, strict=True), reversed(alphas), strict=True
+        ):
+            r += (a - rho * float((y * r).sum())) * s
+        ls = _line_search(ob, x, e, g, -r * fm)
+        if ls is None:
+            if not s_hist:
+                break
+            s_hist, y_hist = [], []
+            continue
+        _, x_new, _ = ls
+        e_new, g_new, _ = evaluate(ob, x_new)
+        s, y = x_new - x, g_new - g
+        if float((s * y).sum()) > 1e-12 * float(np.linalg.norm(s) * np.linalg.norm(y)):
+            s_hist.append(s)
+            y_hist.append(y)
+            if len(s_hist) > history:
+                s_hist.pop(0)
+                y_hist.pop(0)
+        x, e, g = x_new, e_new, g_new
+        trace.append(e)
+        it += 1
+    return Outcome(x, e, float(np.linalg.norm(g)), it, trace)

@@ -1,0 +1,595 @@
+"""Physics reference drapes: the energies of :mod:`draping.physics` minimised per frame.
+
+A dynamic frame is one step of backward Euler written as a minimisation (seed thesis eq.
+(21)-(26)): ``x_{t+1} = argmin_x  1/(2 dt^2) |x - x_t - dt v_t|_M^2 + P(x)`` with ``P`` the
+membrane (StVK), bending, gravity and body-collision energies, then ``v_{t+1} = (x_{t+1} - x_t) /
+dt``. A static drape minimises ``P`` alone. Every solve stops on one rule, stated in
+:class:`SolverSettings`: the residual force ``|grad E|`` (over the free vertices, 2-norm) falls
+below ``tol`` times the weight of the garment ``|M g|`` (2-norm), or ``max_iter`` is reached.
+
+Body contact follows SNUG and GAPS: a body query gives, for the garment vertices, the signed
+distance ``d`` and outward normal ``n`` of the body; the collision energy is applied to the
+distance to the body's tangent plane ``n . (x - p)`` with ``p = x - d n`` (linear in ``x``),
+re-queried every ``requery_every`` iterations (the minimisation restarts its memory there).
+
+Solvers (``SolverSettings.method``, implemented in ``draping._minimize`` on the fused kernels
+of :mod:`draping.physics.fused`):
+
+- ``"newton"`` (default): projected Newton; positive semi-definite element Hessians assembled
+  into a sparse block matrix, each Newton system solved by conjugate gradients preconditioned
+  with a sparse factorisation of ``M / dt^2 + K`` (``K`` a stiffness-weighted graph Laplacian
+  shared by x, y and z, factorised once per frame), backtracking line search;
+- ``"pqn"``: L-BFGS whose initial inverse Hessian is that factorisation (Liu, Bouaziz, Kavan
+  2017, "Quasi-Newton methods for real-time simulation of hyperelastic materials");
+- ``"lbfgs"``: plain L-BFGS.
+
+Every accepted step lowers the energy (Armijo line search) until the body is re-queried. The
+measured comparison is in ``benchmarks/bm_drape.py`` (default chosen as the fastest at equal
+tolerance).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch
+
+from . import _minimize, physics
+
+__all__ = [
+    "BodyQuery",
+    "SolverSettings",
+    "DrapeResult",
+    "sphere_query",
+    "plane_query",
+    "frame_energy",
+    "drape_static",
+    "drape_step",
+    "drape_sequence",
+]
+
+#: ``query(points (N, 3) float64 tensor) -> (distance (N,), normal (N, 3))``: signed distance to
+#: the body (m, positive outside) and outward unit normal at the closest body point.
+BodyQuery = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+
+
+@dataclass(frozen=True)
+class SolverSettings:
+    """Settings of the reference solver (SI units).
+
+    Parameters
+    ----------
+    method : {"newton", "pqn", "lbfgs"}
+        Minimiser (module docstring).
+    tol : float
+        Stopping rule: ``|grad E|_2 <= tol |M g|_2`` over the free vertices (dimensionless;
+        ``1e-3``: the residual force is a thousandth of the garment's weight).
+    max_iter : int
+        Iteration cap per frame.
+    history : int
+        Quasi-Newton memory (pairs).
+    collision_stiffness : float
+        ``k_c`` of the cubic collision penalty (J/m^3).
+    collision_eps : float
+        Collision clearance ``epsilon`` (m).
+    requery_every : int
+        Iterations between body queries (the tangent planes are refreshed).
+    bending : bool
+        Include the dihedral bending energy (eq. (17), flat rest).
+    gravity : tuple of float
+        Acceleration of gravity (m/s^2).
+    static_dt : float
+        Pseudo time step (s) of the preconditioner's mass term in static drapes (keeps it
+        definite; does not change the minimised energy).
+    """
+
+    method: str = "newton"
+    tol: float = 1e-3
+    max_iter: int = 2000
+    history: int = 8
+    collision_stiffness: float = 1e4
+    collision_eps: float = 2e-3
+    requery_every: int = 10
+    bending: bool = True
+    gravity: tuple[float, float, float] = physics.GRAVITY
+    static_dt: float = 0.05
+
+    def __post_init__(self) -> None:
+        if self.method not in ("newton", "pqn", "lbfgs"):
+            raise ValueError(f"method: expected 'newton', 'pqn' or 'lbfgs', got {self.method!r}")
+        for name in ("tol", "static_dt"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{name}: expected a finite value > 0, got {v}")
+        for name in ("collision_stiffness", "collision_eps"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"{name}: expected a finite value >= 0, got {v}")
+        for name in ("max_iter", "history", "requery_every"):
+            v = getattr(self, name)
+            if int(v) != v or v < 1:
+                raise ValueError(f"{name}: expected an integer >= 1, got {v}")
+
+
+class DrapeResult(NamedTuple):
+    """One solved frame.
+
+    Attributes
+    ----------
+    x : (V, 3) float64 tensor
+        Positions (m).
+    v : (V, 3) float64 tensor
+        Velocities (m/s); zeros for a static drape.
+    energy : float
+        Final energy (J), with the last tangent planes.
+    residual : float
+        Final ``|grad E| / |M g|``.
+    iterations : int
+        Iterations used.
+    converged : bool
+        Whether the stopping rule was met before ``max_iter``.
+    seconds : float
+        Wall time of the solve (s).
+    trace : list of float
+        Energy after each accepted iteration (J); entries after a re-query use the new planes.
+    """
+
+    x: torch.Tensor
+    v: torch.Tensor
+    energy: float
+    residual: float
+    iterations: int
+    converged: bool
+    seconds: float
+    trace: list[float]
+
+
+# ---------------------------------------------------------------------- analytic bodies
+
+
+def sphere_query(center: Sequence[float], radius: float) -> BodyQuery:
+    """Exact signed distance and normal of a sphere (a test and benchmark body).
+
+    Parameters
+    ----------
+    center : (3,) float
+        Centre (m).
+    radius : float
+        Radius (m), > 0.
+
+    Returns
+    -------
+    BodyQuery
+        ``d = |x - c| - r``, ``n = (x - c) / |x - c|`` (``+z`` at the centre itself).
+
+    Raises
+    ------
+    ValueError
+        Bad centre or radius.
+    """
+    c = torch.as_tensor(center, dtype=torch.float64)
+    if c.shape != (3,) or not bool(torch.isfinite(c).all()):
+        raise ValueError(f"center: expected 3 finite values, got {center}")
+    if not (np.isfinite(radius) and radius > 0):
+        raise ValueError(f"radius: expected a finite value > 0, got {radius}")
+
+    def query(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        d = points.detach().to(torch.float64) - c
+        r = torch.linalg.norm(d, dim=-1)
+        safe = torch.where(r > 0, r, torch.ones_like(r))
+        n = torch.where(
+            (r > 0)[:, None], d / safe[:, None], torch.tensor([0.0, 0.0, 1.0], dtype=d.dtype)
+        )
+        return r - radius, n
+
+    return query
+
+
+def plane_query(point: Sequence[float], normal: Sequence[float]) -> BodyQuery:
+    """Exact signed distance to a plane (a floor), positive on the side of ``normal``.
+
+    Parameters
+    ----------
+    point : (3,) float
+        A point of the plane (m).
+    normal : (3,) float
+        Its normal (normalised here).
+
+    Returns
+    -------
+    BodyQuery
+
+    Raises
+    ------
+    ValueError
+        A zero or non-finite normal.
+    """
+    p = torch.as_tensor(point, dtype=torch.float64)
+    n = torch.as_tensor(normal, dtype=torch.float64)
+    nn = float(torch.linalg.norm(n)) if n.shape == (3,) else 0.0
+    if p.shape != (3,) or not np.isfinite(nn) or nn == 0:
+        raise ValueError(
+            f"point, normal: expected 3 values each and a non-zero normal, got {point}, {normal}"
+        )
+    n = n / nn
+
+    def query(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        d = (points.detach().to(torch.float64) - p) @ n
+        return d, n.expand(points.shape[0], 3)
+
+    return query
+
+
+# ---------------------------------------------------------------------- energy
+
+
+def frame_energy(
+    x: torch.Tensor,
+    rest: physics.RestState,
+    settings: SolverSettings | None = None,
+    *,
+    x_prev: torch.Tensor | None = None,
+    v_prev: torch.Tensor | None = None,
+    dt: float | None = None,
+    anchor: torch.Tensor | None = None,
+    normal: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """The energy the reference solver minimises, in torch (J).
+
+    Membrane (StVK) + bending (eq. (17), if ``settings.bending``) + gravity + collision on the
+    tangent planes ``(anchor, normal)`` (if given) + inertia (if ``x_prev`` is given).
+
+    Parameters
+    ----------
+    x : (..., V, 3) float tensor
+        Positions (m).
+    rest : physics.RestState
+        Garment rest geometry and material.
+    settings : SolverSettings, optional
+        Which terms and their constants.
+    x_prev, v_prev : (V, 3) float tensor, optional
+        Previous positions (m) and velocities (m/s) of a dynamic frame.
+    dt : float, optional
+        Time step (s), with ``x_prev``.
+    anchor, normal : (V, 3) float tensor, optional
+        Closest body points (m) and outward normals.
+
+    Returns
+    -------
+    (...) float tensor
+        Energy (J).
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, ``x_prev`` without ``v_prev`` and ``dt``, ``anchor`` without ``normal``.
+    """
+    settings = SolverSettings() if settings is None else settings
+    e = physics.stvk_energy(x, rest) + physics.gravity_energy(x, rest, settings.gravity)
+    if settings.bending:
+        e = e + physics.bending_energy(x, rest)
+    if (anchor is None) != (normal is None):
+        raise ValueError("anchor, normal: expected both or neither")
+    if anchor is not None:
+        d = physics.plane_distance(x, anchor, normal)
+        e = e + physics.collision_energy(d, settings.collision_stiffness, settings.collision_eps)
+    if x_prev is not None:
+        if v_prev is None or dt is None:
+            raise ValueError("x_prev: expected v_prev and dt with it")
+        e = e + physics.inertia_energy(x, x_prev, v_prev, rest, dt)
+    return e
+
+
+def _planes(
+    x: torch.Tensor, query: BodyQuery | None
+) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    if query is None:
+        return None, None
+    d, n = query(x.detach())
+    d = torch.as_tensor(d, dtype=x.dtype).reshape(-1)
+    n = torch.as_tensor(n, dtype=x.dtype).reshape(-1, 3)
+    if d.shape[0] != x.shape[0] or n.shape[0] != x.shape[0]:
+        raise ValueError(
+            f"query: expected distances (V,) and normals (V, 3) for V = {x.shape[0]}, got "
+            f"{tuple(d.shape)} and {tuple(n.shape)}"
+        )
+    if not (bool(torch.isfinite(d).all()) and bool(torch.isfinite(n).all())):
+        raise ValueError("query: returned non-finite distances or normals")
+    return x.detach() - d[:, None] * n, n
+
+
+# ---------------------------------------------------------------------- solve
+
+
+class _Problem(NamedTuple):
+    rest: physics.RestState
+    settings: SolverSettings
+    query: BodyQuery | None
+    free: torch.Tensor  # (V,) bool
+    weight: float  # |M g| (N)
+    x_prev: torch.Tensor | None
+    v_prev: torch.Tensor | None
+    dt: float | None
+
+
+def _objective(pb: _Problem, x: np.ndarray) -> _minimize.Objective:
+    st = pb.settings
+    anchor, normal = _planes(torch.from_numpy(x), pb.query)
+    x_hat = None
+    if pb.x_prev is not None:
+        x_hat = (pb.x_prev + pb.dt * pb.v_prev).numpy()
+    return _minimize.Objective(
+        _structure(pb.rest),
+        pb.rest,
+        np.asarray(st.gravity, dtype=np.float64),
+        st.bending,
+        float(st.collision_stiffness),
+        float(st.collision_eps),
+        x_hat,
+        pb.dt,
+        None if anchor is None else anchor.numpy(),
+        None if normal is None else normal.numpy(),
+        pb.free.numpy(),
+    )
+
+
+_STRUCTURES: dict[int, tuple[physics.RestState, _minimize.Structure]] = {}
+
+
+def _structure(rest: physics.RestState) -> _minimize.Structure:
+    """The garment's sparse pattern, cached per RestState object (a few entries)."""
+    hit = _STRUCTURES.get(id(rest))
+    if hit is not None and hit[0] is rest:
+        return hit[1]
+    if len(_STRUCTURES) > 8:
+        _STRUCTURES.clear()
+    st = _minimize.structure(rest)
+    _STRUCTURES[id(rest)] = (rest, st)
+    return st
+
+
+def _solve(x0: torch.Tensor, pb: _Problem) -> tuple[torch.Tensor, float, float, int, list]:
+    """Minimise one frame, re-querying the body every ``requery_every`` iterations."""
+    st = pb.settings
+    x = x0.numpy().copy()
+    ob = _objective(pb, x)
+    tol_abs = st.tol * pb.weight
+    precond = None
+    if st.method in ("newton", "pqn"):
+        precond = _minimize.laplacian_factor(ob, pb.dt or st.static_dt)
+    done, trace = 0, []
+    while True:
+        chunk = (
+            st.max_iter - done if pb.query is None else min(st.requery_every, st.max_iter - done)
+        )
+        if st.method == "newton":
+            out = _minimize.newton(ob, x, tol_abs, chunk, precond, pb.weight)
+        else:
+            out = _minimize.quasi_newton(ob, x, tol_abs, chunk, st.history, precond)
+        x, done = out.x, done + out.iterations
+        trace += out.trace
+        if pb.query is None:
+            e, gn = out.energy, out.grad_norm
+            break
+        ob = _objective(pb, x)
+        e, g, _ = _minimize.evaluate(ob, x)
+        gn = float(np.linalg.norm(g))
+        if gn <= tol_abs or done >= st.max_iter or out.iterations == 0:
+            break
+    return torch.from_numpy(x), e, gn / pb.weight, done, trace
+
+
+# ---------------------------------------------------------------------- public drivers
+
+
+def _check_positions(x: Any, n: int, name: str) -> torch.Tensor:
+    t = torch.as_tensor(x) if not isinstance(x, torch.Tensor) else x
+    if not t.is_floating_point():
+        raise TypeError(f"{name}: expected floating positions, got dtype {t.dtype}")
+    if t.shape != (n, 3):
+        raise ValueError(f"{name}: expected shape ({n}, 3), got {tuple(t.shape)}")
+    if not bool(torch.isfinite(t).all()):
+        raise ValueError(f"{name}: expected finite values, got NaN or inf")
+    return t.detach().to(torch.float64)
+
+
+def _free_mask(pinned: Any, n: int) -> torch.Tensor:
+    free = torch.ones(n, dtype=torch.bool)
+    if pinned is None:
+        return free
+    p = torch.as_tensor(np.asarray(pinned))
+    if p.dtype == torch.bool:
+        if p.shape != (n,):
+            raise ValueError(f"pinned: expected a ({n},) bool mask, got shape {tuple(p.shape)}")
+        return ~p
+    if p.is_floating_point() or p.ndim != 1:
+        raise TypeError(f"pinned: expected vertex indices or a bool mask, got {p.dtype}")
+    if p.numel() and (int(p.min()) < 0 or int(p.max()) >= n):
+        raise ValueError(f"pinned: expected indices in [0, {n - 1}]")
+    free[p.long()] = False
+    return free
+
+
+def _check_rest(rest: Any) -> int:
+    if not isinstance(rest, physics.RestState):
+        raise TypeError(f"rest: expected a physics.RestState, got {type(rest).__name__}")
+    return rest.n_vertices
+
+
+def _problem(rest, settings, query, pinned, x_prev, v_prev, dt) -> _Problem:
+    _check_rest(rest)
+    settings = SolverSettings() if settings is None else settings
+    if not isinstance(settings, SolverSettings):
+        raise TypeError(f"settings: expected SolverSettings, got {type(settings).__name__}")
+    free = _free_mask(pinned, rest.n_vertices)
+    mass = rest.mass.detach().double()
+    weight = float(torch.linalg.norm(mass[free])) * float(np.linalg.norm(settings.gravity))
+    if weight == 0:
+        weight = float(torch.linalg.norm(mass[free])) * 9.81 or 1.0
+    return _Problem(rest, settings, query, free, weight, x_prev, v_prev, dt)
+
+
+def drape_static(
+    rest: physics.RestState,
+    x0: Any,
+    query: BodyQuery | None = None,
+    settings: SolverSettings | None = None,
+    pinned: Any = None,
+) -> DrapeResult:
+    """Static drape: minimise membrane + bending + gravity + collision from ``x0``.
+
+    The contact is frictionless: a garment must be held by the body's shape (a sleeve, a
+    waistband) or by pinned vertices, otherwise its energy is unbounded below (a sheet slides
+    off a sphere) and the solve ends at ``max_iter`` with ``converged`` False.
+
+    Parameters
+    ----------
+    rest : physics.RestState
+        Garment rest geometry and material.
+    x0 : (V, 3) float
+        Initial positions (m), e.g. the garment skinned to the posed body.
+    query : BodyQuery, optional
+        The body (signed distance and normal); None for no body.
+    settings : SolverSettings, optional
+        Solver and energy constants.
+    pinned : (V,) bool or (P,) int, optional
+        Vertices held at their ``x0`` positions.
+
+    Returns
+    -------
+    DrapeResult
+        With zero velocities.
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, non-finite positions, bad pinned indices or a bad query answer.
+    TypeError
+        Bad argument types.
+    """
+    x0 = _check_positions(x0, _check_rest(rest), "x0")
+    pb = _problem(rest, settings, query, pinned, None, None, None)
+    t0 = time.perf_counter()
+    x, e, res, it, trace = _solve(x0, pb)
+    sec = time.perf_counter() - t0
+    return DrapeResult(x, torch.zeros_like(x), e, res, it, res <= pb.settings.tol, sec, trace)
+
+
+def drape_step(
+    rest: physics.RestState,
+    x_prev: Any,
+    v_prev: Any,
+    dt: float,
+    query: BodyQuery | None = None,
+    settings: SolverSettings | None = None,
+    pinned: Any = None,
+    x_pinned: Any = None,
+) -> DrapeResult:
+    """One backward-Euler frame (thesis eq. (25)-(26)) from ``(x_prev, v_prev)``.
+
+    Parameters
+    ----------
+    rest : physics.RestState
+        Garment rest geometry and material.
+    x_prev, v_prev : (V, 3) float
+        Positions (m) and velocities (m/s) at the previous frame.
+    dt : float
+        Time step (s), > 0 (1/30 for 30 fps motions).
+    query : BodyQuery, optional
+        The body at the new frame; None for no body.
+    settings : SolverSettings, optional
+        Solver and energy constants.
+    pinned : (V,) bool or (P,) int, optional
+        Vertices prescribed at ``x_pinned`` (default: ``x_prev``, i.e. held still).
+    x_pinned : (V, 3) float, optional
+        Prescribed positions of the pinned vertices at the new frame (m).
+
+    Returns
+    -------
+    DrapeResult
+        ``x`` at the new frame and ``v = (x - x_prev) / dt``.
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, non-finite values, ``dt <= 0``.
+    TypeError
+        Bad argument types.
+    """
+    n = _check_rest(rest)
+    xp = _check_positions(x_prev, n, "x_prev")
+    vp = _check_positions(v_prev, n, "v_prev")
+    if not (np.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt: expected a finite value > 0, got {dt}")
+    pb = _problem(rest, settings, query, pinned, xp, vp, float(dt))
+    # start from the free flight (inertia's minimiser), pinned vertices at their targets
+    x0 = xp + dt * vp
+    if x_pinned is not None:
+        x0 = torch.where(pb.free[:, None], x0, _check_positions(x_pinned, n, "x_pinned"))
+    else:
+        x0 = torch.where(pb.free[:, None], x0, xp)
+    t0 = time.perf_counter()
+    x, e, res, it, trace = _solve(x0, pb)
+    sec = time.perf_counter() - t0
+    return DrapeResult(x, (x - xp) / dt, e, res, it, res <= pb.settings.tol, sec, trace)
+
+
+def drape_sequence(
+    rest: physics.RestState,
+    x0: Any,
+    queries: Sequence[BodyQuery | None],
+    dt: float,
+    settings: SolverSettings | None = None,
+    v0: Any = None,
+    pinned: Any = None,
+    pinned_positions: Sequence[Any] | None = None,
+) -> list[DrapeResult]:
+    """A dynamic drape: one :func:`drape_step` per body frame.
+
+    Parameters
+    ----------
+    rest : physics.RestState
+        Garment rest geometry and material.
+    x0 : (V, 3) float
+        Positions at time 0 (m) (e.g. a static drape on the first pose).
+    queries : sequence of BodyQuery or None
+        The body at frames 1..T.
+    dt : float
+        Time step (s).
+    settings : SolverSettings, optional
+        Solver and energy constants.
+    v0 : (V, 3) float, optional
+        Initial velocities (m/s); zeros by default.
+    pinned : (V,) bool or (P,) int, optional
+        Prescribed vertices.
+    pinned_positions : sequence of (V, 3) float, optional
+        Their positions at frames 1..T (default: held at ``x0``).
+
+    Returns
+    -------
+    list of DrapeResult
+        Frames 1..T.
+
+    Raises
+    ------
+    ValueError, TypeError
+        As :func:`drape_step`.
+    """
+    n = _check_rest(rest)
+    x = _check_positions(x0, n, "x0")
+    v = torch.zeros_like(x) if v0 is None else _check_positions(v0, n, "v0")
+    if pinned_positions is not None and len(pinned_positions) != len(queries):
+        raise ValueError(
+            f"pinned_positions: expected {len(queries)} frames, got {len(pinned_positions)}"
+        )
+    out = []
+    for t, q in enumerate(queries):
+        xp = None if pinned_positions is None else pinned_positions[t]
+        r = drape_step(rest, x, v, dt, q, settings, pinned, xp)
+        out.append(r)
+        x, v = r.x, r.v
+    return out

@@ -1,0 +1,270 @@
+"""The physics reference solver: fused kernels against torch, descent, free fall, contact."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from draping import _minimize
+from draping import physics as P
+from draping import reference as R
+from draping.physics import fused
+
+
+def grid_sheet(n: int, size: float = 1.0, z: float = 0.0):
+    u, v = np.meshgrid(
+        np.linspace(-size / 2, size / 2, n), np.linspace(-size / 2, size / 2, n), indexing="ij"
+    )
+    verts = np.stack([u.ravel(), v.ravel(), np.full(n * n, z)], 1)
+    a = np.array([i * n + j for i in range(n - 1) for j in range(n - 1)])
+    faces = np.concatenate([np.stack([a, a + n, a + 1], 1), np.stack([a + 1, a + n, a + n + 1], 1)])
+    return verts, faces
+
+
+def noisy(v: np.ndarray, scale: float, seed: int) -> np.ndarray:
+    return v + scale * np.random.default_rng(seed).standard_normal(v.shape)
+
+
+# ---------------------------------------------------------------------- fused kernels
+
+
+def test_fused_energies_and_gradients_match_torch():
+    v, f = grid_sheet(6, 0.5)
+    r = P.rest_state(v, f)
+    m = r.material
+    x = noisy(v, 0.03, 0)
+    xt = torch.tensor(x, requires_grad=True)
+    for torch_fn, fused_fn in [
+        (
+            lambda y: P.stvk_energy(y, r),
+            lambda y: fused.membrane(
+                y,
+                r.faces.numpy(),
+                r.dm_inv.numpy(),
+                r.area.numpy(),
+                m.thickness,
+                m.lame_mu,
+                m.lame_lambda,
+            ),
+        ),
+        (
+            lambda y: P.bending_energy(y, r),
+            lambda y: fused.bending(
+                y,
+                fused.hinge_quads(f, r.hinges.edges, r.hinges.faces),
+                r.hinge_weight.numpy(),
+                m.bending_stiffness,
+            ),
+        ),
+    ]:
+        e = torch_fn(xt)
+        (g,) = torch.autograd.grad(e, xt)
+        ef, gf, _ = fused_fn(x)
+        assert ef == pytest.approx(float(e), rel=1e-12)
+        np.testing.assert_allclose(gf, g.numpy(), rtol=0, atol=1e-12 * np.abs(gf).max())
+
+
+def test_fused_membrane_hessian_exact_when_stretched_and_psd_when_compressed():
+    v, f = grid_sheet(4, 0.3)
+    r = P.rest_state(v, f)
+    m = r.material
+    args = (
+        r.faces.numpy(),
+        r.dm_inv.numpy(),
+        r.area.numpy(),
+        m.thickness,
+        m.lame_mu,
+        m.lame_lambda,
+    )
+    n = v.shape[0]
+
+    def dense(h):
+        out = np.zeros((3 * n, 3 * n))
+        for t, tri in enumerate(f):
+            idx = (3 * tri[:, None] + np.arange(3)).ravel()
+            out[np.ix_(idx, idx)] += h[t]
+        return out
+
+    x = v * np.array([1.2, 1.1, 1.0])  # stretched: S positive definite, the projection is exact
+    _, _, h = fused.membrane(x, *args, want_hess=True)
+    want = torch.autograd.functional.hessian(lambda y: P.stvk_energy(y, r), torch.tensor(x))
+    np.testing.assert_allclose(
+        dense(h), want.reshape(3 * n, 3 * n).numpy(), rtol=0, atol=1e-10 * np.abs(h).max()
+    )
+    xc = noisy(v * 0.8, 0.01, 1)  # compressed: the exact Hessian is indefinite, ours is not
+    _, _, hc = fused.membrane(xc, *args, want_hess=True)
+    exact = torch.autograd.functional.hessian(lambda y: P.stvk_energy(y, r), torch.tensor(xc))
+    scale = np.abs(hc).max()
+    assert np.linalg.eigvalsh(exact.reshape(3 * n, 3 * n).numpy()).min() < -1e-6 * scale
+    assert np.linalg.eigvalsh(hc).min() > -1e-10 * scale
+
+
+def test_fused_bending_gauss_newton_hessian_at_a_flat_hinge():
+    """At theta = 0 the Gauss-Newton Hessian 2 k w grad(theta) grad(theta)^T is exact."""
+    v = np.array([[0.0, 0, 0], [0, 1, 0], [1, 0.5, 0], [-1, 0.5, 0]])
+    f = np.array([[0, 2, 1], [0, 1, 3]])
+    r = P.rest_state(v, f)
+    q = fused.hinge_quads(f, r.hinges.edges, r.hinges.faces)
+    _, _, h = fused.bending(v, q, r.hinge_weight.numpy(), 1.0, want_hess=True)
+    want = torch.autograd.functional.hessian(
+        lambda y: P.bending_energy(y, r, stiffness=1.0), torch.tensor(v)
+    )
+    perm = (3 * q[0][:, None] + np.arange(3)).ravel()
+    np.testing.assert_allclose(h[0], want.reshape(12, 12).numpy()[np.ix_(perm, perm)], atol=1e-12)
+
+
+def test_objective_matches_frame_energy():
+    v, f = grid_sheet(5, 0.4, z=0.31)
+    r = P.rest_state(v, f)
+    st = R.SolverSettings()
+    query = R.sphere_query([0, 0, 0], 0.3)
+    x_prev = torch.tensor(v)
+    v_prev = torch.tensor(noisy(np.zeros_like(v), 0.1, 2))
+    x = torch.tensor(noisy(v, 0.01, 3) - np.array([0.0, 0.0, 0.015]))
+    pb = R._problem(r, st, query, None, x_prev, v_prev, 1 / 30)
+    ob = R._objective(pb, x.numpy())
+    e, g, h = _minimize.evaluate(ob, x.numpy(), want_hess=True)
+    xt = x.clone().requires_grad_()
+    et = R.frame_energy(
+        xt,
+        r,
+        st,
+        x_prev=x_prev,
+        v_prev=v_prev,
+        dt=1 / 30,
+        anchor=torch.from_numpy(ob.anchor),
+        normal=torch.from_numpy(ob.normal),
+    )
+    (gt,) = torch.autograd.grad(et, xt)
+    assert e == pytest.approx(float(et), rel=1e-12)
+    np.testing.assert_allclose(g, gt.numpy(), atol=1e-10 * np.abs(g).max())
+    assert h.shape == (75, 75)
+    assert np.linalg.eigvalsh(h.toarray()).min() > 0  # the mass term makes it definite
+
+
+# ---------------------------------------------------------------------- solver behaviour
+
+
+@pytest.mark.parametrize("method", ["newton", "pqn", "lbfgs"])
+def test_energy_decreases_every_step(method):
+    v, f = grid_sheet(9, 0.5, z=0.305)
+    r = P.rest_state(v, f)
+    st = R.SolverSettings(method=method, tol=1e-3, max_iter=300, requery_every=10_000)
+    out = R.drape_static(r, v, R.sphere_query([0, 0, 0], 0.3), st, pinned=[40])
+    tr = np.array(out.trace)
+    assert len(tr) >= 2
+    assert np.all(np.diff(tr) <= 1e-12 * np.abs(tr).max())
+    assert out.converged or method != "newton"
+
+
+def test_free_fall_accelerates_at_g():
+    v, f = grid_sheet(6, 0.4)
+    r = P.rest_state(v, f)
+    dt = 1 / 30
+    st = R.SolverSettings(tol=1e-8)
+    res = R.drape_sequence(r, v, [None] * 5, dt, st)
+    g = np.array(P.GRAVITY)
+    for k, fr in enumerate(res, start=1):
+        np.testing.assert_allclose(fr.v.numpy(), np.tile(k * dt * g, (36, 1)), atol=1e-6)
+    # positions of backward Euler under constant g: x_k = x_0 + dt^2 g k (k + 1) / 2
+    np.testing.assert_allclose(res[-1].x.numpy(), v + dt * dt * g * 15, atol=1e-7)
+    assert float(P.stvk_energy(res[-1].x, r)) < 1e-12
+
+
+@pytest.mark.parametrize("method", ["newton", "pqn"])
+def test_no_penetration_left_on_a_sheet_pressed_onto_a_sphere(method):
+    v, f = grid_sheet(11, 0.4, z=0.3)
+    r = P.rest_state(v, f)
+    query = R.sphere_query([0, 0, 0], 0.3)
+    st = R.SolverSettings(method=method, tol=1e-3)
+    v0 = np.tile([0.0, 0.0, -1.5], (121, 1))  # thrown down at 1.5 m/s
+    res = R.drape_sequence(r, v, [query] * 3, 1 / 30, st, v0=v0)
+    for fr in res:
+        d, _ = query(fr.x)
+        assert float(d.min()) >= 0.0
+        assert fr.converged
+
+
+def test_sheet_over_sphere_reaches_a_plausible_rest_shape():
+    """A tablecloth pinned at its centre on top of a ball (frictionless: unpinned, it slides)."""
+    v, f = grid_sheet(13, 0.8, z=0.302)
+    r = P.rest_state(v, f)
+    query = R.sphere_query([0, 0, 0], 0.3)
+    centre = 6 * 13 + 6
+    out = R.drape_static(r, v, query, R.SolverSettings(tol=1e-3, max_iter=500), pinned=[centre])
+    assert out.converged
+    x = out.x.numpy()
+    d, _ = query(out.x)
+    ring = [centre - 1, centre + 1, centre - 13, centre + 13]
+    assert np.all((d[ring].numpy() > -1e-4) & (d[ring].numpy() < 3e-3))  # lying on the ball
+    assert float(d.min()) > -5e-4
+    corners = [0, 12, 156, 168]
+    assert np.all(x[corners, 2] < 0.2)  # the corners hang down the sides
+    lengths = np.linalg.norm(x[r.edges[:, 1]] - x[r.edges[:, 0]], axis=1)
+    strain = np.abs(lengths / r.edge_length.numpy() - 1)
+    assert strain.mean() < 0.03
+
+
+def test_pinned_vertices_stay_put():
+    v, f = grid_sheet(7, 0.3)
+    r = P.rest_state(v, f)
+    pinned = np.array([0, 6])
+    res = R.drape_sequence(r, v, [None] * 3, 1 / 30, R.SolverSettings(tol=1e-4), pinned=pinned)
+    np.testing.assert_array_equal(res[-1].x.numpy()[pinned], v[pinned])
+    assert float(res[-1].x[24, 2]) < -0.01  # the middle falls
+    mask = np.zeros(49, dtype=bool)
+    mask[pinned] = True
+    res2 = R.drape_sequence(r, v, [None] * 3, 1 / 30, R.SolverSettings(tol=1e-4), pinned=mask)
+    np.testing.assert_allclose(res2[-1].x.numpy(), res[-1].x.numpy(), atol=1e-9)
+
+
+# ---------------------------------------------------------------------- validation
+
+
+def test_settings_and_inputs_are_validated():
+    with pytest.raises(ValueError, match="method"):
+        R.SolverSettings(method="sgd")
+    with pytest.raises(ValueError, match="tol"):
+        R.SolverSettings(tol=0)
+    with pytest.raises(ValueError, match="max_iter"):
+        R.SolverSettings(max_iter=0)
+    with pytest.raises(ValueError, match="collision_eps"):
+        R.SolverSettings(collision_eps=-1)
+    v, f = grid_sheet(4, 0.3)
+    r = P.rest_state(v, f)
+    with pytest.raises(ValueError, match="x0"):
+        R.drape_static(r, v[:5])
+    with pytest.raises(ValueError, match="x0"):
+        R.drape_static(r, np.full_like(v, np.nan))
+    with pytest.raises(TypeError, match="rest"):
+        R.drape_static("sheet", v)
+    with pytest.raises(TypeError, match="settings"):
+        R.drape_static(r, v, settings={"tol": 1})
+    with pytest.raises(ValueError, match="dt"):
+        R.drape_step(r, v, np.zeros_like(v), 0.0)
+    with pytest.raises(ValueError, match="pinned"):
+        R.drape_static(r, v, pinned=[99])
+    with pytest.raises(ValueError, match="pinned"):
+        R.drape_static(r, v, pinned=np.zeros(3, dtype=bool))
+    with pytest.raises(ValueError, match="query"):
+        R.drape_static(r, v, query=lambda p: (torch.zeros(3), torch.zeros(3, 3)))
+    with pytest.raises(ValueError, match="query"):
+        R.drape_static(r, v, query=lambda p: (torch.full((16,), np.nan), torch.zeros(16, 3)))
+    with pytest.raises(ValueError, match="radius"):
+        R.sphere_query([0, 0, 0], -1.0)
+    with pytest.raises(ValueError, match="normal"):
+        R.plane_query([0, 0, 0], [0, 0, 0])
+    with pytest.raises(ValueError, match="pinned_positions"):
+        R.drape_sequence(r, v, [None] * 2, 0.1, pinned=[0], pinned_positions=[v])
+
+
+def test_analytic_queries():
+    q = R.sphere_query([1.0, 0, 0], 0.5)
+    d, n = q(torch.tensor([[1.0, 0, 1.0], [1.0, 0.25, 0.0], [1.0, 0.0, 0.0]]))
+    np.testing.assert_allclose(d.numpy(), [0.5, -0.25, -0.5])
+    np.testing.assert_allclose(n.numpy(), [[0, 0, 1], [0, 1, 0], [0, 0, 1]])
+    p = R.plane_query([0, 0, 1.0], [0, 0, 2.0])
+    d, n = p(torch.tensor([[3.0, 1, 1.5], [0.0, 0, 0.0]]))
+    np.testing.assert_allclose(d.numpy(), [0.5, -1.0])
+    np.testing.assert_allclose(n.numpy(), [[0, 0, 1], [0, 0, 1]])
