@@ -386,24 +386,45 @@ def _pseudonormals(v, faces, tri, neighbours):
     Angle-weighted normals of its 3 vertices, its 3 edge normals (sum of the two adjacent face
     normals) and its face normal.
     """
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    ln = np.linalg.norm(n, axis=1, keepdims=True)
-    fn = n / np.where(ln > 0, ln, 1.0)
-    # corner angles
-    ang = np.empty((len(faces), 3))
-    for k in range(3):
-        e1 = tri[:, (k + 1) % 3] - tri[:, k]
-        e2 = tri[:, (k + 2) % 3] - tri[:, k]
-        c = (e1 * e2).sum(1)
-        s = np.linalg.norm(np.cross(e1, e2), axis=1)
-        ang[:, k] = np.arctan2(s, c)
-    vnorm = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(vnorm, faces[:, k], ang[:, k, None] * fn)
-    other = np.where(neighbours >= 0, neighbours, np.arange(len(faces))[:, None])
-    en = fn[:, None, :] + fn[other]  # (F, 3, 3)
-    return np.ascontiguousarray(
-        np.concatenate([vnorm[faces], en, fn[:, None, :]], axis=1))
+    out = np.empty((len(faces), 7, 3))
+    _pseudo_kernel(tri, faces, neighbours, len(v), out)
+    return out
+
+
+@nb.njit(cache=True)
+def _pseudo_kernel(tri, faces, neighbours, n_vertices, out):  # pragma: no cover - compiled
+    F = tri.shape[0]
+    fn = np.zeros((F, 3))
+    vn = np.zeros((n_vertices, 3))
+    for f in range(F):
+        T = tri[f]
+        ux, uy, uz = T[1, 0] - T[0, 0], T[1, 1] - T[0, 1], T[1, 2] - T[0, 2]
+        wx, wy, wz = T[2, 0] - T[0, 0], T[2, 1] - T[0, 1], T[2, 2] - T[0, 2]
+        nx, ny, nz = uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx
+        ln = math.sqrt(nx * nx + ny * ny + nz * nz)
+        if ln > 0.0:
+            nx, ny, nz = nx / ln, ny / ln, nz / ln
+        fn[f, 0], fn[f, 1], fn[f, 2] = nx, ny, nz
+        for k in range(3):
+            i, j, m = k, (k + 1) % 3, (k + 2) % 3
+            ax, ay, az = T[j, 0] - T[i, 0], T[j, 1] - T[i, 1], T[j, 2] - T[i, 2]
+            bx, by, bz = T[m, 0] - T[i, 0], T[m, 1] - T[i, 1], T[m, 2] - T[i, 2]
+            cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+            ang = math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz)
+            vi = faces[f, k]
+            vn[vi, 0] += ang * nx
+            vn[vi, 1] += ang * ny
+            vn[vi, 2] += ang * nz
+    for f in range(F):
+        for k in range(3):
+            g = neighbours[f, k]
+            if g < 0:
+                g = f
+            for c in range(3):
+                out[f, k, c] = vn[faces[f, k], c]
+                out[f, 3 + k, c] = fn[f, c] + fn[g, c]
+        for c in range(3):
+            out[f, 6, c] = fn[f, c]
 
 
 def signed_distance(points, vertices, faces, max_distance: float = math.inf) -> BodyQuery:
