@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from polygeo import mesh
+from polygeo.checks import as_tensor, check_faces, check_finite, check_shape, is_numpy_like
 
 __all__ = [
     "edge_error",
@@ -34,15 +35,10 @@ __all__ = [
 
 
 def _positions(x: Any, name: str) -> tuple[torch.Tensor, bool]:
-    numpy_in = not isinstance(x, torch.Tensor)
-    t = torch.as_tensor(np.asarray(x) if numpy_in else x)
-    if not t.is_floating_point():
-        raise TypeError(f"{name}: expected floating positions, got dtype {t.dtype}")
-    if t.ndim < 2 or t.shape[-1] != 3:
-        raise ValueError(f"{name}: expected shape (..., V, 3), got {tuple(t.shape)}")
-    if not bool(torch.isfinite(t).all()):
-        raise ValueError(f"{name}: expected finite values, got NaN or inf")
-    return t.detach(), numpy_in
+    t = as_tensor(x, name)
+    check_shape(t, name, ("...", "V", 3))
+    check_finite(t, name)
+    return t.detach(), is_numpy_like(x)
 
 
 def _pair(x: Any, template: Any) -> tuple[torch.Tensor, torch.Tensor, bool]:
@@ -82,8 +78,7 @@ def edge_error(x: Any, template: Any, faces: Any) -> Any:
         Non-floating positions.
     """
     xt, tt, numpy_in = _pair(x, template)
-    e = mesh.edges(np.asarray(faces) if not isinstance(faces, torch.Tensor) else faces)
-    e = torch.as_tensor(np.asarray(e))
+    e = mesh.edges(check_faces(faces, xt.shape[-2]))
     l0 = mesh.edge_lengths(tt, e)
     ok = l0 > 0
     ratio = mesh.edge_lengths(xt, e)[..., ok] / l0[ok]
@@ -113,7 +108,7 @@ def area_error(x: Any, template: Any, faces: Any) -> Any:
         As :func:`edge_error`.
     """
     xt, tt, numpy_in = _pair(x, template)
-    f = torch.as_tensor(np.asarray(faces) if not isinstance(faces, torch.Tensor) else faces)
+    f = check_faces(faces, xt.shape[-2])
     a0 = mesh.face_areas(tt, f)
     ok = a0 > 0
     ratio = mesh.face_areas(xt, f)[..., ok] / a0[ok]
@@ -142,14 +137,11 @@ def collision_error(distance: Any, threshold: float = 0.0) -> Any:
     TypeError
         Non-floating distances.
     """
-    numpy_in = not isinstance(distance, torch.Tensor)
-    d = torch.as_tensor(np.asarray(distance) if numpy_in else distance).detach()
-    if not d.is_floating_point():
-        raise TypeError(f"distance: expected floating values, got dtype {d.dtype}")
+    numpy_in = is_numpy_like(distance)
+    d = as_tensor(distance, "distance").detach()
     if d.ndim < 1 or d.shape[-1] == 0:
         raise ValueError(f"distance: expected shape (..., V) with V > 0, got {tuple(d.shape)}")
-    if not bool(torch.isfinite(d).all()):
-        raise ValueError("distance: expected finite values, got NaN or inf")
+    check_finite(d, "distance")
     return _out(100.0 * (d < threshold).to(d.dtype).mean(-1), numpy_in)
 
 
@@ -210,7 +202,7 @@ def normal_error(x: Any, reference: Any, faces: Any) -> Any:
     rt, _ = _positions(reference, "reference")
     if rt.shape[-2] != xt.shape[-2]:
         raise ValueError(f"reference: expected {xt.shape[-2]} vertices, got {rt.shape[-2]}")
-    f = torch.as_tensor(np.asarray(faces) if not isinstance(faces, torch.Tensor) else faces)
+    f = check_faces(faces, xt.shape[-2])
     na = mesh.face_normals(xt, f)
     nb = mesh.face_normals(rt.to(xt.dtype), f)
     cos = (na.normals * nb.normals).sum(-1).clamp(-1.0, 1.0)

@@ -38,6 +38,13 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
+from polygeo.checks import (
+    as_tensor,
+    check_finite,
+    check_positive,
+    check_shape,
+)
+
 from . import _minimize, physics
 
 __all__ = [
@@ -387,13 +394,9 @@ def _solve(x0: torch.Tensor, pb: _Problem) -> tuple[torch.Tensor, float, float, 
 
 
 def _check_positions(x: Any, n: int, name: str) -> torch.Tensor:
-    t = torch.as_tensor(x) if not isinstance(x, torch.Tensor) else x
-    if not t.is_floating_point():
-        raise TypeError(f"{name}: expected floating positions, got dtype {t.dtype}")
-    if t.shape != (n, 3):
-        raise ValueError(f"{name}: expected shape ({n}, 3), got {tuple(t.shape)}")
-    if not bool(torch.isfinite(t).all()):
-        raise ValueError(f"{name}: expected finite values, got NaN or inf")
+    t = as_tensor(x, name)
+    check_shape(t, name, (n, 3))
+    check_finite(t, name)
     return t.detach().to(torch.float64)
 
 
@@ -523,8 +526,7 @@ def drape_step(
     n = _check_rest(rest)
     xp = _check_positions(x_prev, n, "x_prev")
     vp = _check_positions(v_prev, n, "v_prev")
-    if not (np.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt: expected a finite value > 0, got {dt}")
+    dt = check_positive(dt, "dt")
     pb = _problem(rest, settings, query, pinned, xp, vp, float(dt))
     # start from the free flight (inertia's minimiser), pinned vertices at their targets
     x0 = xp + dt * vp

@@ -11,8 +11,9 @@ import numpy as np
 import torch
 
 from polygeo import covariance, neighbors
+from polygeo.checks import check_int, check_positive
 
-from .rest import RestState, _like, _positions, _positive, _reduce
+from .rest import RestState, _like, _positions, _reduce
 
 __all__ = [
     "collision_energy",
@@ -62,8 +63,8 @@ def collision_energy(
     """
     if not isinstance(distance, torch.Tensor) or not distance.is_floating_point():
         raise TypeError(f"distance: expected a floating tensor, got {type(distance).__name__}")
-    k = _positive(stiffness, "stiffness", strict=False)
-    e = _positive(eps, "eps", strict=False)
+    k = check_positive(stiffness, "stiffness", strict=False)
+    e = check_positive(eps, "eps", strict=False)
     pen = torch.clamp(e - distance, min=0.0)
     return _reduce(k * pen**3, reduction)
 
@@ -127,9 +128,8 @@ def repulsion_pairs(x: Any, rest: RestState, delta: float, k: int = 16) -> torch
     ValueError
         Bad shapes, ``delta <= 0`` or ``k < 1``.
     """
-    delta = _positive(delta, "delta")
-    if int(k) != k or k < 1:
-        raise ValueError(f"k: expected an integer >= 1, got {k}")
+    delta = check_positive(delta, "delta")
+    k = check_int(k, "k", low=1)
     xt = torch.as_tensor(x).detach().cpu().to(torch.float64)
     _positions(xt, rest.n_vertices)
     nb = neighbors.knn(xt.numpy(), int(k) + rest.ring_index.shape[1])
@@ -178,8 +178,8 @@ def repulsion_energy(
     ValueError
         Bad shapes or parameters.
     """
-    delta = _positive(delta, "delta")
-    w = _positive(weight, "weight", strict=False)
+    delta = check_positive(delta, "delta")
+    w = check_positive(weight, "weight", strict=False)
     if pairs.ndim != 2 or pairs.shape[0] != x.shape[-2]:
         raise ValueError(f"pairs: expected shape ({x.shape[-2]}, k), got {tuple(pairs.shape)}")
     _positions(x, pairs.shape[0])
@@ -229,7 +229,7 @@ def inextensibility_energy(
         cov,
         _like(rest.ring_sigma, x),
         k_ext,
-        weight=_positive(weight, "weight", strict=False),
+        weight=check_positive(weight, "weight", strict=False),
         reduction="none",
     )
     return per.sum(-1)
@@ -261,9 +261,8 @@ def k_ext_schedule(distance: Any, epoch: int, eps: float = 2e-3) -> torch.Tensor
     ValueError
         Negative epoch or clearance.
     """
-    if int(epoch) != epoch or epoch < 0:
-        raise ValueError(f"epoch: expected an integer >= 0, got {epoch}")
-    e = _positive(eps, "eps", strict=False)
+    epoch = check_int(epoch, "epoch", low=0)
+    e = check_positive(eps, "eps", strict=False)
     d = torch.as_tensor(distance).detach()
     dc = torch.clamp(e - d, min=0.0)
     return 1.0 + torch.clamp(10.0 * dc, max=0.03) * min(int(epoch), 100)

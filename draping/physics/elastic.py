@@ -10,8 +10,9 @@ from typing import Any
 import torch
 
 from polygeo import mesh
+from polygeo.checks import check_positive
 
-from .rest import GRAVITY, Material, RestState, _like, _positions, _positive, _reduce
+from .rest import GRAVITY, Material, RestState, _like, _positions, _reduce
 
 __all__ = [
     "deformation_gradient",
@@ -169,7 +170,7 @@ def bending_energy(
     kb = (
         rest.material.bending_stiffness
         if stiffness is None
-        else _positive(stiffness, "stiffness", strict=False)
+        else check_positive(stiffness, "stiffness", strict=False)
     )
     th = _angles(x, rest)
     if rest_angle:
@@ -224,7 +225,7 @@ def gaps_bending_energy(
     kb = (
         rest.material.bending_stiffness
         if stiffness is None
-        else _positive(stiffness, "stiffness", strict=False)
+        else check_positive(stiffness, "stiffness", strict=False)
     )
     th = _angles(x, rest)
     d = th - _like(rest.hinges.angle, x)
@@ -307,6 +308,6 @@ def inertia_energy(
     _positions(x, n)
     _positions(x_prev, n, "x_prev")
     _positions(v_prev, n, "v_prev")
-    dt = _positive(dt, "dt")
+    dt = check_positive(dt, "dt")
     d = x - x_prev - dt * v_prev
     return ((d * d).sum(-1) * _like(rest.mass, x)).sum(-1) / (2.0 * dt * dt)

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from polygeo import covariance, mesh, neighbors
+from polygeo.checks import as_tensor, check_faces, check_finite, check_shape
 
 __all__ = ["GRAVITY", "Material", "RestState", "rest_state"]
 
@@ -156,24 +157,13 @@ class RestState:
 
 
 def _positions(x: Any, n: int, name: str = "x") -> torch.Tensor:
+    """Energies take torch tensors (they are differentiated), of shape (..., n, 3)."""
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{name}: expected a torch tensor, got {type(x).__name__}")
     if not x.is_floating_point():
         raise TypeError(f"{name}: expected a floating tensor, got dtype {x.dtype}")
-    if x.ndim < 2 or x.shape[-1] != 3 or x.shape[-2] != n:
-        raise ValueError(f"{name}: expected shape (..., {n}, 3), got {tuple(x.shape)}")
+    check_shape(x, name, ("...", n, 3))
     return x
-
-
-def _positive(value: float, name: str, strict: bool = True) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError) as exc:
-        raise TypeError(f"{name}: expected a real number, got {type(value).__name__}") from exc
-    if not np.isfinite(v) or v < 0 or (strict and v == 0):
-        bound = "> 0" if strict else ">= 0"
-        raise ValueError(f"{name}: expected a finite value {bound}, got {value}")
-    return v
 
 
 def _like(t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -229,24 +219,14 @@ def rest_state(vertices: Any, faces: Any, material: Material | None = None) -> R
     material = Material() if material is None else material
     if not isinstance(material, Material):
         raise TypeError(f"material: expected a Material, got {type(material).__name__}")
-    vt = torch.as_tensor(
-        np.asarray(vertices) if not isinstance(vertices, torch.Tensor) else vertices
-    )
-    if not vt.is_floating_point():
-        vt = vt.to(torch.float64)
-    if vt.ndim != 2 or vt.shape[1] != 3:
-        raise ValueError(f"vertices: expected shape (V, 3), got {tuple(vt.shape)}")
-    if not bool(torch.isfinite(vt).all()):
-        raise ValueError("vertices: expected finite values, got NaN or inf")
+    vt = as_tensor(vertices, "vertices")
+    check_shape(vt, "vertices", ("V", 3))
+    check_finite(vt, "vertices")
     dtype = vt.dtype
     v = vt.detach().cpu().to(torch.float64).numpy()
     n = v.shape[0]
-    e_idx = mesh.edges(faces)  # validates faces (types, shape)
-    f = np.asarray(
-        torch.as_tensor(faces).cpu().numpy() if isinstance(faces, torch.Tensor) else faces
-    ).astype(np.int64)
-    if f.size and f.max() >= n:
-        raise ValueError(f"faces: expected vertex indices in [0, {n - 1}], got max {f.max()}")
+    f = check_faces(faces, n).cpu().numpy()
+    e_idx = mesh.edges(f)
     dm, area = _local_dm(v, f)
     mass = np.zeros(n)
     np.add.at(mass, f.reshape(-1), np.repeat(area / 3.0, 3))
