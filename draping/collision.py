@@ -32,12 +32,12 @@ import torch
 
 from polygeo.checks import as_tensor, check_faces, check_finite, check_shape
 
-__all__ = ["BodyQuery", "MeshQuery", "signed_distance", "winding_numbers"]
+__all__ = ["SignedDistance", "MeshQuery", "signed_distance", "winding_numbers"]
 
 _LEAF = 4
 
 
-class BodyQuery(NamedTuple):
+class SignedDistance(NamedTuple):
     """Result of a signed-distance query.
 
     Attributes
@@ -333,7 +333,15 @@ class MeshQuery:
         self.tri = tri
         self.pseudo = _pseudonormals(vn, self.faces, tri, self.neighbours)
 
-    def query(self, points, max_distance: float = math.inf) -> BodyQuery:
+    def __call__(self, points) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(distance (N,), normal (N, 3))`` of points: a ``draping.reference.BodyQuery``.
+
+        So a posed body plugs into the reference solver as ``MeshQuery(vertices, faces)``.
+        """
+        res = self.query(points)
+        return res.distance, res.normal
+
+    def query(self, points, max_distance: float = math.inf) -> SignedDistance:
         """Signed distance, closest point, normal and face of each point.
 
         Parameters
@@ -346,7 +354,7 @@ class MeshQuery:
 
         Returns
         -------
-        BodyQuery
+        SignedDistance
             Tensors (NumPy arrays for NumPy ``points``) in the points' dtype.
 
         Raises
@@ -371,12 +379,12 @@ class MeshQuery:
                self.lo, self.hi, self.pseudo, md2, dist, closest, normal, face)
         if numpy_in:
             dt = pn.dtype if p.dtype == torch.float64 else np.float32
-            return BodyQuery(dist.astype(dt), closest.astype(dt), normal.astype(dt), face)
+            return SignedDistance(dist.astype(dt), closest.astype(dt), normal.astype(dt), face)
 
         def back(a):
             return torch.from_numpy(a).to(dtype=p.dtype, device=p.device)
 
-        return BodyQuery(back(dist), back(closest), back(normal),
+        return SignedDistance(back(dist), back(closest), back(normal),
                          torch.from_numpy(face).to(p.device))
 
 
@@ -427,7 +435,7 @@ def _pseudo_kernel(tri, faces, neighbours, n_vertices, out):  # pragma: no cover
             out[f, 6, c] = fn[f, c]
 
 
-def signed_distance(points, vertices, faces, max_distance: float = math.inf) -> BodyQuery:
+def signed_distance(points, vertices, faces, max_distance: float = math.inf) -> SignedDistance:
     """One-shot signed distance of points to a closed mesh (builds a :class:`MeshQuery`).
 
     Parameters
@@ -443,7 +451,7 @@ def signed_distance(points, vertices, faces, max_distance: float = math.inf) -> 
 
     Returns
     -------
-    BodyQuery
+    SignedDistance
         Fields with the leading batch dimension of the input (``(B, N)``, ``(B, N, 3)``).
 
     Raises
@@ -472,9 +480,9 @@ def signed_distance(points, vertices, faces, max_distance: float = math.inf) -> 
         if b > 0 and v.shape[0] > 1:
             q.update(v[b])
         res.append(q.query(p[min(b, p.shape[0] - 1)], max_distance))
-    out = BodyQuery(*[torch.stack(x) for x in zip(*res)])
+    out = SignedDistance(*[torch.stack(x) for x in zip(*res)])
     if numpy_in:
-        return BodyQuery(*[x.numpy() for x in out])
+        return SignedDistance(*[x.numpy() for x in out])
     return out
 
 
