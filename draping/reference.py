@@ -48,7 +48,7 @@ from polygeo.checks import (
 from . import _minimize, physics
 
 __all__ = [
-    "BodyQuery",
+    "QueryFn",
     "SolverSettings",
     "DrapeResult",
     "sphere_query",
@@ -60,8 +60,11 @@ __all__ = [
 ]
 
 #: ``query(points (N, 3) float64 tensor) -> (distance (N,), normal (N, 3))``: signed distance to
-#: the body (m, positive outside) and outward unit normal at the closest body point.
-BodyQuery = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+#: the body (m, positive outside) and outward unit normal at the closest body point; a
+#: ``draping.collision.BodyQuery`` answer (``MeshQuery.query``) is accepted too, its closest
+#: points then anchor the tangent planes, and infinite distances (beyond its ``max_distance``)
+#: mean no contact.
+QueryFn = Callable[[torch.Tensor], Any]
 
 
 @dataclass(frozen=True)
@@ -158,7 +161,7 @@ class DrapeResult(NamedTuple):
 # ---------------------------------------------------------------------- analytic bodies
 
 
-def sphere_query(center: Sequence[float], radius: float) -> BodyQuery:
+def sphere_query(center: Sequence[float], radius: float) -> QueryFn:
     """Exact signed distance and normal of a sphere (a test and benchmark body).
 
     Parameters
@@ -170,7 +173,7 @@ def sphere_query(center: Sequence[float], radius: float) -> BodyQuery:
 
     Returns
     -------
-    BodyQuery
+    QueryFn
         ``d = |x - c| - r``, ``n = (x - c) / |x - c|`` (``+z`` at the centre itself).
 
     Raises
@@ -196,7 +199,7 @@ def sphere_query(center: Sequence[float], radius: float) -> BodyQuery:
     return query
 
 
-def plane_query(point: Sequence[float], normal: Sequence[float]) -> BodyQuery:
+def plane_query(point: Sequence[float], normal: Sequence[float]) -> QueryFn:
     """Exact signed distance to a plane (a floor), positive on the side of ``normal``.
 
     Parameters
@@ -208,7 +211,7 @@ def plane_query(point: Sequence[float], normal: Sequence[float]) -> BodyQuery:
 
     Returns
     -------
-    BodyQuery
+    QueryFn
 
     Raises
     ------
@@ -292,11 +295,17 @@ def frame_energy(
 
 
 def _planes(
-    x: torch.Tensor, query: BodyQuery | None
+    x: torch.Tensor, query: QueryFn | None
 ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """Tangent planes ``(anchor, normal)`` of the body under each vertex (module docstring)."""
     if query is None:
         return None, None
-    d, n = query(x.detach())
+    ans = query(x.detach())
+    closest = getattr(ans, "closest", None)
+    if closest is not None:  # a draping.collision.BodyQuery
+        d, n = ans.distance, ans.normal
+    else:
+        d, n = ans
     d = torch.as_tensor(d, dtype=x.dtype).reshape(-1)
     n = torch.as_tensor(n, dtype=x.dtype).reshape(-1, 3)
     if d.shape[0] != x.shape[0] or n.shape[0] != x.shape[0]:
@@ -304,9 +313,23 @@ def _planes(
             f"query: expected distances (V,) and normals (V, 3) for V = {x.shape[0]}, got "
             f"{tuple(d.shape)} and {tuple(n.shape)}"
         )
-    if not (bool(torch.isfinite(d).all()) and bool(torch.isfinite(n).all())):
-        raise ValueError("query: returned non-finite distances or normals")
-    return x.detach() - d[:, None] * n, n
+    if bool(torch.isnan(d).any()) or bool((d == -torch.inf).any()):
+        raise ValueError("query: returned NaN or -inf distances")
+    far = torch.isinf(d)  # beyond the query's max_distance: no contact possible
+    ok_n = torch.isfinite(n).all(-1)
+    if not bool((ok_n | far).all()):
+        raise ValueError("query: returned non-finite normals")
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=x.dtype)
+    n = torch.where(far[:, None], up, n)
+    d = torch.where(far, torch.full_like(d, 1e3), d)
+    if closest is not None:
+        anchor = torch.as_tensor(closest, dtype=x.dtype).reshape(-1, 3)
+        anchor = torch.where(
+            far[:, None] | ~torch.isfinite(anchor), x.detach() - d[:, None] * n, anchor
+        )
+    else:
+        anchor = x.detach() - d[:, None] * n
+    return anchor, n
 
 
 # ---------------------------------------------------------------------- solve
@@ -315,7 +338,7 @@ def _planes(
 class _Problem(NamedTuple):
     rest: physics.RestState
     settings: SolverSettings
-    query: BodyQuery | None
+    query: QueryFn | None
     free: torch.Tensor  # (V,) bool
     weight: float  # |M g| (N)
     x_prev: torch.Tensor | None
@@ -439,7 +462,7 @@ def _problem(rest, settings, query, pinned, x_prev, v_prev, dt) -> _Problem:
 def drape_static(
     rest: physics.RestState,
     x0: Any,
-    query: BodyQuery | None = None,
+    query: QueryFn | None = None,
     settings: SolverSettings | None = None,
     pinned: Any = None,
 ) -> DrapeResult:
@@ -455,7 +478,7 @@ def drape_static(
         Garment rest geometry and material.
     x0 : (V, 3) float
         Initial positions (m), e.g. the garment skinned to the posed body.
-    query : BodyQuery, optional
+    query : QueryFn, optional
         The body (signed distance and normal); None for no body.
     settings : SolverSettings, optional
         Solver and energy constants.
@@ -487,7 +510,7 @@ def drape_step(
     x_prev: Any,
     v_prev: Any,
     dt: float,
-    query: BodyQuery | None = None,
+    query: QueryFn | None = None,
     settings: SolverSettings | None = None,
     pinned: Any = None,
     x_pinned: Any = None,
@@ -502,7 +525,7 @@ def drape_step(
         Positions (m) and velocities (m/s) at the previous frame.
     dt : float
         Time step (s), > 0 (1/30 for 30 fps motions).
-    query : BodyQuery, optional
+    query : QueryFn, optional
         The body at the new frame; None for no body.
     settings : SolverSettings, optional
         Solver and energy constants.
@@ -543,7 +566,7 @@ def drape_step(
 def drape_sequence(
     rest: physics.RestState,
     x0: Any,
-    queries: Sequence[BodyQuery | None],
+    queries: Sequence[QueryFn | None],
     dt: float,
     settings: SolverSettings | None = None,
     v0: Any = None,
@@ -558,7 +581,7 @@ def drape_sequence(
         Garment rest geometry and material.
     x0 : (V, 3) float
         Positions at time 0 (m) (e.g. a static drape on the first pose).
-    queries : sequence of BodyQuery or None
+    queries : sequence of QueryFn or None
         The body at frames 1..T.
     dt : float
         Time step (s).

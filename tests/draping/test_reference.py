@@ -268,3 +268,36 @@ def test_analytic_queries():
     d, n = p(torch.tensor([[3.0, 1, 1.5], [0.0, 0, 0.0]]))
     np.testing.assert_allclose(d.numpy(), [0.5, -1.0])
     np.testing.assert_allclose(n.numpy(), [[0, 0, 1], [0, 0, 1]])
+
+
+def test_mesh_query_answers_are_accepted():
+    """A draping.collision-style answer (distance, closest, normal, face) drives the contact."""
+    from typing import NamedTuple
+
+    class Answer(NamedTuple):
+        distance: torch.Tensor
+        closest: torch.Tensor
+        normal: torch.Tensor
+        face: torch.Tensor
+
+    sphere = R.sphere_query([0, 0, 0], 0.3)
+
+    def query(p):
+        d, n = sphere(p)
+        far = d > 0.05  # as MeshQuery.query(max_distance=0.05)
+        closest = p - d[:, None] * n
+        return Answer(
+            torch.where(far, torch.inf, d),
+            torch.where(far[:, None], torch.nan, closest),
+            n,
+            torch.zeros(len(d), dtype=torch.int64),
+        )
+
+    v, f = grid_sheet(11, 0.4, z=0.3)
+    r = P.rest_state(v, f)
+    v0 = np.tile([0.0, 0.0, -1.5], (121, 1))
+    a = R.drape_sequence(r, v, [query] * 2, 1 / 30, R.SolverSettings(tol=1e-4), v0=v0)
+    b = R.drape_sequence(r, v, [sphere] * 2, 1 / 30, R.SolverSettings(tol=1e-4), v0=v0)
+    np.testing.assert_allclose(a[-1].x.numpy(), b[-1].x.numpy(), atol=1e-5)
+    with pytest.raises(ValueError, match="query"):
+        R.drape_static(r, v, query=lambda p: (torch.full((121,), np.nan), torch.zeros(121, 3)))
