@@ -338,7 +338,7 @@ class MeshQuery:
         self.pseudo = _pseudonormals(vn, self.faces, tri, self.neighbours)
 
     def __call__(self, points) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(distance (N,), normal (N, 3))`` of points: a ``draping.reference.BodyQuery``.
+        """``(distance (N,), normal (N, 3))`` of points: a ``draping.reference.QueryFn``.
 
         So a posed body plugs into the reference solver as ``MeshQuery(vertices, faces)``.
         """

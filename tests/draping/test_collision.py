@@ -108,7 +108,7 @@ def test_refit_equals_rebuild_and_batched_equals_single(body):
             refit.closest, fresh.closest, atol=1e-12)
         assert torch.allclose(batched.distance[b], refit.distance, atol=1e-14)
     assert batched.distance.dtype == torch.float64 and batched.closest.shape == pts.shape
-    d, n = q(pts[1])  # the reference solver's BodyQuery protocol
+    d, n = q(pts[1])  # the reference solver's QueryFn protocol
     assert torch.equal(d, refit.distance) and torch.equal(n, refit.normal)
 
 
