@@ -12,7 +12,7 @@ Sections (all measured in one run, baselines included):
   mesh and garment-like meshes (draped sheet, skirt) never seen in training: K in
   {1, 25, 100, 400} and orders 2-6 with PCA frames (height RMSE, normal error, boundary gap,
   foldover share, fit time, Chamfer x 1e3), and at the default K the three orientations.
-  Chamfer protocol (:func:`polygeo.patches.chamfer_distance`): the fitted surface is
+  Chamfer protocol (:func:`polygeo.proximity.chamfer_distance`): the fitted surface is
   resampled once (level 1) and compared with the input, both normalised by the input's
   unit-sphere similarity, with 10k input samples and squared distances (thesis Table 5.1,
   AtlasNet). Three figures: ``chamfer_x1e3`` the point protocol (10k samples on each
@@ -51,7 +51,8 @@ import polygeo.synthetic as syn  # noqa: E402
 from polygeo import jets  # noqa: E402
 from polygeo.canonical import canonicalize, height_residual, optimize_rotations  # noqa: E402
 from polygeo.partition import default_n_patches, mesh_area, partition_mesh  # noqa: E402
-from polygeo.patches import PatchSet, chamfer_distance  # noqa: E402
+from polygeo.patches import PatchSet  # noqa: E402
+from polygeo.proximity import chamfer_distance  # noqa: E402
 from polygeo.stn import load_pretrained, stn_rotations  # noqa: E402
 
 ORIENTS = ("pca", "stn", "optimize")

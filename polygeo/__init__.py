@@ -12,6 +12,8 @@ Sub-modules (imported on first access, so that ``import polygeo`` stays cheap):
 ``runs``        atomic writes, safe checkpoints, resume by settings fingerprint, logs, progress
 ``partition``   ACVD-like partition of a surface into patches
 ``patches``     PatchSet: oriented n-jet patches (PolyFit)
+``proximity``   closest points on triangles, point-to-mesh distances, Chamfer distances
+``subdivision`` regular barycentric subdivision of triangulations
 ``canonical``   PCA canonical frames of patches, jet height residual, test-time refinement
 ``stn``         rigid spatial transformer refining patch orientations (network, weights)
 ``stn_train``   training of the STN (resumable, checkpointed)
@@ -55,6 +57,8 @@ _SUBMODULES = (
     "runs",
     "partition",
     "patches",
+    "proximity",
+    "subdivision",
     "canonical",
     "stn",
     "stn_train",

@@ -55,7 +55,8 @@ def _run(args: argparse.Namespace) -> int:
     import json
 
     from polygeo.io import read_points, write_ply
-    from polygeo.patches import PatchSet, chamfer_report
+    from polygeo.patches import PatchSet
+    from polygeo.proximity import chamfer_report
 
     order = _order(args.order)
     data = read_points(args.mesh)
