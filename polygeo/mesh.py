@@ -53,6 +53,7 @@ __all__ = [
     "boundary_edges",
     "non_manifold_edges",
     "connected_components",
+    "vertex_adjacency",
     "weld_vertices",
     "remove_unreferenced_vertices",
     "orient_faces",
@@ -361,6 +362,46 @@ def non_manifold_edges(faces: Any) -> Any:
     return _out(e[count > 2], numpy_in)
 
 
+def vertex_adjacency(faces: Any, n_vertices: int) -> sp.csr_matrix:
+    """Symmetric vertex adjacency of a triangle mesh (the library's one adjacency builder).
+
+    :func:`polygeo.neighbors.mesh_k_ring` walks it and :func:`connected_components` labels it;
+    ``polygeo.neighbors.vertex_adjacency`` is this function.
+
+    Parameters
+    ----------
+    faces : (F, 3) int array or tensor
+        Triangles as vertex indices in ``[0, n_vertices)``.
+    n_vertices : int
+        Number of vertices ``N`` (unreferenced vertices get empty rows).
+
+    Returns
+    -------
+    scipy.sparse.csr_matrix
+        ``(N, N)`` float64 matrix with 1 where two distinct vertices share an edge, zero
+        diagonal (degenerate faces add no self loops).
+
+    Raises
+    ------
+    ValueError
+        Bad shape or out-of-range indices.
+    TypeError
+        Non-integer faces.
+    """
+    n = check_int(n_vertices, "n_vertices", low=0)
+    f, _ = _faces(faces, n)
+    a = np.concatenate([f[:, 0], f[:, 1], f[:, 2]])
+    b = np.concatenate([f[:, 1], f[:, 2], f[:, 0]])
+    keep = a != b
+    a, b = a[keep], b[keep]
+    rows = np.concatenate([a, b])
+    cols = np.concatenate([b, a])
+    m = sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n))
+    m.sum_duplicates()
+    m.data[:] = 1.0
+    return m
+
+
 def connected_components(faces: Any, n_vertices: int) -> tuple[int, Any]:
     """Vertex-connected components of a mesh.
 
@@ -387,10 +428,7 @@ def connected_components(faces: Any, n_vertices: int) -> tuple[int, Any]:
     """
     n = check_int(n_vertices, "n_vertices", low=0)
     f, numpy_in = _faces(faces, n)
-    a = np.concatenate([f[:, 0], f[:, 1]])
-    b = np.concatenate([f[:, 1], f[:, 2]])
-    g = sp.coo_matrix((np.ones(a.size), (a, b)), shape=(n, n))
-    nc, labels = _cc(g, directed=False)
+    nc, labels = _cc(vertex_adjacency(f, n), directed=False)
     return int(nc), _out(labels.astype(np.int64), numpy_in)
 
 

@@ -1,4 +1,4 @@
-"""Neighbourhoods of point clouds and meshes: k-NN, radius balls, mesh k-rings, adjacency.
+"""Neighbourhoods of point clouds and meshes: k-NN, radius balls, mesh k-rings.
 
 All functions accept NumPy arrays or torch tensors and return the input's array type
 (torch tensors come back on the CPU, as int64 / the input's floating dtype). Variable-size
@@ -31,6 +31,7 @@ from .checks import (
     check_shape,
     is_numpy_like,
 )
+from .mesh import vertex_adjacency
 
 __all__ = [
     "PointIndex",
@@ -39,7 +40,7 @@ __all__ = [
     "knn",
     "radius_neighbors",
     "mesh_k_ring",
-    "vertex_adjacency",
+    "vertex_adjacency",  # re-exported from polygeo.mesh, its home
 ]
 
 
@@ -584,43 +585,6 @@ def radius_neighbors(
     index, dist = _tree_query(pts, qry, kmax, w, upper=upper, self_first=queries is None)
     mask = index >= 0
     return Neighbors(_out(index, numpy_in), _out(dist, numpy_in), _out(mask, numpy_in))
-
-
-def vertex_adjacency(faces: Any, n_vertices: int) -> sp.csr_matrix:
-    """Symmetric vertex adjacency of a triangle mesh.
-
-    Parameters
-    ----------
-    faces : (F, 3) int array or tensor
-        Triangles as vertex indices in ``[0, n_vertices)``.
-    n_vertices : int
-        Number of vertices ``N`` (unreferenced vertices get empty rows).
-
-    Returns
-    -------
-    scipy.sparse.csr_matrix
-        ``(N, N)`` float64 matrix with 1 where two distinct vertices share an edge, zero
-        diagonal (degenerate faces add no self loops).
-
-    Raises
-    ------
-    ValueError
-        Bad shape or out-of-range indices.
-    TypeError
-        Non-integer faces.
-    """
-    n = check_int(n_vertices, "n_vertices", low=0)
-    f = check_faces(faces, n).cpu().numpy()
-    a = np.concatenate([f[:, 0], f[:, 1], f[:, 2]])
-    b = np.concatenate([f[:, 1], f[:, 2], f[:, 0]])
-    keep = a != b
-    a, b = a[keep], b[keep]
-    rows = np.concatenate([a, b])
-    cols = np.concatenate([b, a])
-    m = sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n))
-    m.sum_duplicates()
-    m.data[:] = 1.0
-    return m
 
 
 def mesh_k_ring(

@@ -36,6 +36,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .checks import as_tensor, check_faces, check_finite, check_int, check_positive, check_shape
+from .mesh import edges as mesh_edges
 
 __all__ = [
     "Partition",
@@ -97,8 +98,8 @@ class Partition:
         """Symmetric (K, K) CSR matrix of the patch graph; entry = number of shared edges."""
         a = self.labels[self.boundary_pairs[:, 0]]
         b = self.labels[self.boundary_pairs[:, 1]]
-        k = self.n_patches
-        m = sp.coo_matrix((np.ones(len(a)), (a, b)), shape=(k, k)).tocsr()
+        n = self.n_patches
+        m = sp.coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n)).tocsr()
         return (m + m.T).tocsr()
 
 
@@ -152,12 +153,6 @@ def _unique_pairs(pairs: np.ndarray) -> np.ndarray:
     key = np.sort(lo * n + hi)
     key = key[np.concatenate([[True], key[1:] != key[:-1]])]
     return np.stack([key // n, key % n], axis=1)
-
-
-def _unique_edges(faces: np.ndarray) -> np.ndarray:
-    """Unique undirected edges ``(i, j)``, ``i < j``, of triangles, shape (E, 2)."""
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    return _unique_pairs(e)
 
 
 def _vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -306,30 +301,30 @@ def _finish(
         _, nn = cKDTree(points[idx]).query(points[~active], k=1)
         labels = labels.copy()
         labels[~active] = labels[idx[np.asarray(nn, np.int64)]]
-    k = int(labels.max()) + 1
+    n_patches = int(labels.max()) + 1
     diff = labels[edges[:, 0]] != labels[edges[:, 1]]
     bp = edges[diff]
     bp = _unique_pairs(bp)
     adj = _unique_pairs(np.stack([labels[bp[:, 0]], labels[bp[:, 1]]], axis=1))
-    areas = np.bincount(labels, weights=vertex_areas, minlength=k)
+    areas = np.bincount(labels, weights=vertex_areas, minlength=n_patches)
     for arr in (labels, bp, adj, areas):
         arr.setflags(write=False)
     return Partition(
         labels=labels,
-        n_patches=k,
+        n_patches=n_patches,
         adjacency=adj.astype(np.int64),
         boundary_pairs=bp.astype(np.int64),
         areas=areas,
     )
 
 
-def _check_k(n_patches: Any, n_vertices: int) -> int:
-    k = check_int(n_patches, "n_patches", low=1)
-    if k > n_vertices:
+def _check_n_patches(n_patches: Any, n_vertices: int) -> int:
+    n = check_int(n_patches, "n_patches", low=1)
+    if n > n_vertices:
         raise ValueError(
-            f"n_patches: expected at most the number of vertices ({n_vertices}), got {k}"
+            f"n_patches: expected at most the number of vertices ({n_vertices}), got {n}"
         )
-    return k
+    return n
 
 
 # ----------------------------------------------------------------------------- meshes
@@ -394,7 +389,10 @@ def partition_mesh(
     maxiter = check_int(maxiter, "maxiter", low=1)
     vert_area = _vertex_areas(v, f)
     total = float(vert_area.sum())
-    k = min(default_n_patches(total), len(v)) if n_patches is None else _check_k(n_patches, len(v))
+    if n_patches is None:
+        n_patches = min(default_n_patches(total), len(v))
+    else:
+        n_patches = _check_n_patches(n_patches, len(v))
 
     # ACVD on a private, compact copy: referenced vertices only, permuted by the seed.
     used = np.zeros(len(v), bool)
@@ -408,22 +406,22 @@ def partition_mesh(
     lf = local[f]
     cells = np.hstack([np.full((len(lf), 1), 3, np.int64), lf]).ravel()
     poly = pv.PolyData(v[used_idx].copy(), cells)
-    k_acvd = min(k, len(used_idx))
-    if k_acvd == 1:
+    n_acvd = min(n_patches, len(used_idx))
+    if n_acvd == 1:
         lab_local = np.zeros(len(used_idx), np.int64)
     else:
         with warnings.catch_warnings():  # pyacvd uses a deprecated pyvista accessor
             warnings.simplefilter("ignore")
             clus = pyacvd.Clustering(poly)
-            lab_local = np.asarray(clus.cluster(k_acvd, maxiter=maxiter), np.int64)
+            lab_local = np.asarray(clus.cluster(n_acvd, maxiter=maxiter), np.int64)
     labels = np.full(len(v), -1, np.int64)
     labels[used_idx] = lab_local
     if (labels[used] < 0).any():  # ACVD left a vertex unassigned: give it its own cluster
         bad = used & (labels < 0)
         labels[bad] = labels.max() + 1 + np.arange(int(bad.sum()))
 
-    edges = _unique_edges(f)
-    min_area = merge_fraction * total / k
+    edges = mesh_edges(f)
+    min_area = merge_fraction * total / n_patches
     pieces = _split_and_merge(labels, edges, vert_area, used, min_vertices, min_area)
     return _finish(pieces, edges, vert_area, v, used)
 
@@ -431,13 +429,14 @@ def partition_mesh(
 # ----------------------------------------------------------------------------- point clouds
 
 
-def _farthest_point_seeds(points: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
-    """Indices of k farthest-point samples, starting from a seeded random point."""
+def _farthest_point_seeds(points: np.ndarray, n_seeds: int,
+                          rng: np.random.Generator) -> np.ndarray:
+    """Indices of ``n_seeds`` farthest-point samples, starting from a seeded random point."""
     n = len(points)
-    idx = np.empty(k, np.int64)
+    idx = np.empty(n_seeds, np.int64)
     idx[0] = rng.integers(n)
     d = np.sum((points - points[idx[0]]) ** 2, axis=1)
-    for i in range(1, k):
+    for i in range(1, n_seeds):
         idx[i] = int(np.argmax(d))
         d = np.minimum(d, np.sum((points - points[idx[i]]) ** 2, axis=1))
     return idx
@@ -507,12 +506,16 @@ def partition_points(
         edges = np.zeros((0, 2), np.int64)
     vert_area = np.pi * r**2 / max(kq, 1)
     total = float(vert_area.sum())
-    k = min(default_n_patches(total), n) if n_patches is None else _check_k(n_patches, n)
+    if n_patches is None:
+        n_patches = min(default_n_patches(total), n)
+    else:
+        n_patches = _check_n_patches(n_patches, n)
     rng = np.random.default_rng(seed)
-    if k == 1:
+    if n_patches == 1:
         labels = np.zeros(n, np.int64)
     else:
-        seeds = _farthest_point_seeds(p, k, rng if seed is not None else np.random.default_rng(0))
+        seed_rng = rng if seed is not None else np.random.default_rng(0)
+        seeds = _farthest_point_seeds(p, n_patches, seed_rng)
         if seed is None:
             seeds[0] = 0
         centers = p[seeds].copy()
@@ -522,15 +525,16 @@ def partition_points(
             labels = np.asarray(labels, np.int64)
             if it == kmeans_iters:
                 break
-            cnt = np.bincount(labels, minlength=k)
+            cnt = np.bincount(labels, minlength=n_patches)
             sums = np.stack(
-                [np.bincount(labels, weights=p[:, d], minlength=k) for d in range(3)], axis=1
+                [np.bincount(labels, weights=p[:, d], minlength=n_patches) for d in range(3)],
+                axis=1,
             )
             nonempty = cnt > 0
             centers[nonempty] = sums[nonempty] / cnt[nonempty, None]
     active = np.ones(n, bool)
     pieces = _split_and_merge(
-        labels, edges, vert_area, active, min_vertices, merge_fraction * total / k
+        labels, edges, vert_area, active, min_vertices, merge_fraction * total / n_patches
     )
     return _finish(pieces, edges, vert_area, p, active)
 

@@ -105,15 +105,6 @@ OPTION_HELP = {
 _HIDDEN = ("hard",)
 
 
-def _int_or_auto(s: str) -> int | str:
-    """An integer, or the text as given (``--order``, ``--patches``): ``"auto"``, or a value
-    the settings refuse with a message naming the option (exit status 2)."""
-    try:
-        return int(s)
-    except ValueError:
-        return s
-
-
 def _floats(s: str) -> tuple[float, ...]:
     try:
         return tuple(float(x) for x in s.split(",") if x.strip())
@@ -123,7 +114,7 @@ def _floats(s: str) -> tuple[float, ...]:
 
 def _parser_of(annotation: str):
     return {"int": int, "float": float, "bool": _bool, "tuple[str, ...]": _names,
-            "int | str": _int_or_auto, "Sequence[float]": _floats}.get(annotation, str)
+            "Sequence[float]": _floats}.get(annotation, str)  # "int | str": in _settings_from
 
 
 def _add_settings_args(p: argparse.ArgumentParser) -> None:
@@ -164,13 +155,16 @@ def _names(s: str) -> tuple[str, ...]:
 
 def _settings_from(args: argparse.Namespace, base: dict | None = None):
     """:class:`sft.settings.SfTSettings` from the options given (the rest: defaults)."""
-    from .settings import SfTSettings, flat_fields
+    from polygeo.cli import int_or_auto
+
+    from .settings import SfTSettings, field_types, flat_fields
 
     kw = dict(base or {})
+    types = field_types()
     for name in flat_fields():
         v = getattr(args, name, None)
         if v is not None:
-            kw[name] = v
+            kw[name] = int_or_auto(v, name) if types[name] == "int | str" else v
     return SfTSettings.from_flat(**kw)
 
 

@@ -94,16 +94,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _parse_int_or_auto(value: str, name: str) -> int | str:
-    if value == "auto":
-        return "auto"
-    try:
-        return int(value)
-    except ValueError:
-        raise ValueError(f"--{name}: expected an integer or 'auto', got {value!r}") from None
-
-
 def run(args: argparse.Namespace) -> int:
+    from polygeo.cli import int_or_auto
     from polygeo.estimate import differential_quantities
     from polygeo.io import read_points, write_npz, write_ply
     from polygeo.status import describe
@@ -111,8 +103,8 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.output)
     if out.suffix.lower() != ".npz":
         raise ValueError(f"-o/--output: expected a .npz path, got {str(out)!r}")
-    k = _parse_int_or_auto(str(args.k), "k")
-    order = _parse_int_or_auto(str(args.order), "order")
+    k = int_or_auto(args.k, "k")
+    order = int_or_auto(args.order, "order")
     t0 = time.perf_counter()
     data = read_points(args.input)
     t_read = time.perf_counter() - t0

@@ -42,23 +42,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_run)
 
 
-def _order(text: str):
-    if text == "auto":
-        return "auto"
-    try:
-        return int(text)
-    except ValueError:
-        raise ValueError(f"--order: expected an integer 1..6 or 'auto', got {text!r}") from None
-
-
 def _run(args: argparse.Namespace) -> int:
     import json
 
+    from polygeo.cli import int_or_auto
     from polygeo.io import read_points, write_ply
     from polygeo.patches import PatchSet
     from polygeo.proximity import chamfer_report
 
-    order = _order(args.order)
+    order = int_or_auto(args.order, "order", low=1, high=6)
     data = read_points(args.mesh)
     t0 = time.perf_counter()
     ps = PatchSet.fit(

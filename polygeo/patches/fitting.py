@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from .. import jets
-from ..canonical import canonicalize
+from ..canonical import canonicalize, height_residual, optimize_rotations
 from ..checks import check_choice, check_int, check_positive
 from ..partition import Partition, partition
 from ..status import Status
@@ -240,19 +240,18 @@ def refine_rotations(local: torch.Tensor, mask: torch.Tensor, settings: FitSetti
         ``(K, 3, 3)`` rotations (the refined axes in the PCA frame), None for ``"pca"``. The
         STN's rotation is kept only where it lowers the height residual (never worse than PCA).
     """
-    from .. import canonical, stn
+    from .. import stn
 
     order = settings.residual_order
     if settings.orient == "stn":
         Q = stn.stn_rotations(local, mask, settings.stn_model)
         with torch.no_grad():
-            r_pca, _ = canonical.height_residual(local, mask, None, order)
-            r_stn, _ = canonical.height_residual(local, mask, Q, order)
+            r_pca, _ = height_residual(local, mask, None, order)
+            r_stn, _ = height_residual(local, mask, Q, order)
         eye = torch.eye(3, dtype=Q.dtype).expand_as(Q)
         Q = torch.where((r_stn < r_pca)[:, None, None], Q, eye)
     elif settings.orient == "optimize":
-        Q = canonical.optimize_rotations(local, mask, order,
-                                           steps=settings.optimize_steps).rotation
+        Q = optimize_rotations(local, mask, order, steps=settings.optimize_steps).rotation
     else:
         return None
     if keep_side:
