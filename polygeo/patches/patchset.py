@@ -384,7 +384,6 @@ class PatchSet:
         """Every input vertex evaluated through its own patch, ``(V, 3)`` (differentiable)."""
         return evaluate_patches(*self._patches(), self.labels, self._vertex_uv())
 
-
     # ---------------------------------------------------------------- resampling
 
     def resample(self, resolution: int = 0, *, grid: int = 8) -> tuple[Any, Any]:
