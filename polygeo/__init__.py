@@ -24,27 +24,9 @@ Sub-modules (imported on first access, so that ``import polygeo`` stays cheap):
 from __future__ import annotations
 
 import importlib
-import os
-import sys
 from typing import Any
 
 __version__ = "0.1.0"
-
-# The compiled kernels (numba, ``parallel=True``) default to numba's own "workqueue" thread
-# pool. With the OpenMP layer, idle worker threads spin-wait: on a machine whose cores are busy
-# with other work, a 128 x 128 soft render measured 115 ms (median) instead of 9-11 ms. Users
-# who set NUMBA_THREADING_LAYER themselves keep their choice. The workqueue layer must not be
-# entered from several Python threads at once; use processes for that kind of parallelism.
-if "NUMBA_THREADING_LAYER" not in os.environ:
-    os.environ["NUMBA_THREADING_LAYER"] = "workqueue"
-    if "numba" in sys.modules:  # numba already imported: its config was read, set it directly
-        sys.modules["numba"].config.THREADING_LAYER = "workqueue"
-
-# numba's disk cache does not notice a change in a kernel inlined from another module, nor an
-# upgrade that leaves old cache files behind: drop it when the kernels' sources changed.
-from ._numba_cache import drop_stale as _drop_stale  # noqa: E402
-
-_drop_stale(os.path.dirname(__file__))
 
 _SUBMODULES = (
     "jets",

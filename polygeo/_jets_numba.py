@@ -15,6 +15,7 @@ import numba as nb
 import numpy as np
 import torch
 
+from . import _numba_util  # noqa: F401  (cache keyed on all kernel sources; threading layer)
 from ._jets_common import COLLINEAR_TOL, exponents_np
 from .status import Status
 

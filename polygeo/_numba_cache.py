@@ -1,36 +1,54 @@
-"""Dropping numba's on-disk kernel cache when the kernels' sources change.
+"""numba's on-disk kernel cache keyed on every kernel source of the package.
 
-numba keys a cached kernel on the modification time of the file that defines it, not on the
-functions it inlines or calls from other modules: after a change to ``_jets_numba.fit_item``
-(inlined into the fused kernel of ``estimate.py``), the cached fused kernel kept running the old
-fit. The same happens after an upgrade that leaves the old cache files beside the new sources
-(pip does not record them, so it does not remove them). :func:`drop_stale` keeps a hash of
-every source file that defines numba kernels next to the cache and deletes the package's cache
-files when the hash changes, so that the kernels are compiled again from the current sources.
+numba keys a cached kernel on the source of the file that defines it, not on the functions it
+inlines or calls from other modules: after a change to ``_jets_numba.fit_item`` (inlined into
+the fused kernel of ``estimate.py``), the cached fused kernel kept running the old fit. The
+same happens after an upgrade that leaves old cache files beside changed sources (pip does not
+record them, so it does not remove them).
 
-Only the default cache location (``__pycache__`` beside the sources) is handled; with
-``NUMBA_CACHE_DIR`` set, clearing that folder after an upgrade is left to its owner.
+:func:`install` registers numba cache *locators* (numba's own extension point, consulted when a
+``cache=True`` kernel is decorated) for the files under a package folder. They put the cache
+where numba would (``NUMBA_CACHE_DIR`` if set, else ``__pycache__`` beside the source if it is
+writable, else the user's cache folder, e.g. ``~/.cache/numba``) and differ from numba's in one
+thing: the stamp of a kernel is a hash of every source file of the package that defines numba
+kernels (:func:`sources_hash`), so that any change to any kernel source makes every cached
+kernel of the package stale. numba then recompiles it and overwrites the stale entry; nothing
+is deleted, and nothing happens at ``import polygeo`` (the locators are installed when the
+first kernel module is imported, and files are written only when a kernel is compiled).
+
+Kernels of files outside the registered folders keep numba's own locators. A user who sets
+``NUMBA_CACHE_LOCATOR_CLASSES`` chooses the locators themselves (then this has no effect).
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 from pathlib import Path
 
-__all__ = ["drop_stale", "STAMP_NAME"]
+from numba.core import caching
 
-#: Name of the stamp file written in the package's top ``__pycache__``.
-STAMP_NAME = "numba-sources.sha1"
+__all__ = ["install", "sources_hash", "locator_classes"]
 
 _MARKERS = (b"njit", b"numba")
+_ROOTS: list[Path] = []
+_CACHE_IMPL = getattr(caching, "CacheImpl", None) or caching._CacheImpl  # numba < 0.61
 
 
+def _numba_locator(*names: str) -> type | None:
+    for n in names:
+        cls = getattr(caching, n, None)
+        if cls is not None:
+            return cls
+    return None
+
+
+@functools.cache
 def sources_hash(root: Path) -> str:
-    """SHA-1 of the kernel sources under ``root``.
+    """SHA-1 of the kernel sources under ``root`` (computed once per process and folder).
 
-    Relative paths and contents of the ``.py`` files that mention numba; each file is read
-    once.
+    Relative paths and contents of the ``.py`` files that mention numba, in sorted order.
     """
     h = hashlib.sha1()
     for p in sorted(root.rglob("*.py")):
@@ -48,37 +66,62 @@ def sources_hash(root: Path) -> str:
     return h.hexdigest()
 
 
-def drop_stale(root: str | os.PathLike) -> int:
-    """Delete numba's cache files under ``root`` if its kernel sources changed.
+def _root_of(py_file: str) -> Path | None:
+    try:
+        p = Path(py_file).resolve()
+    except OSError:
+        return None
+    for root in _ROOTS:
+        if p.is_relative_to(root):
+            return root
+    return None
+
+
+class _PackageStamp:
+    """Mixin: only for files under a registered folder; stamped by all its kernel sources."""
+
+    def get_source_stamp(self):
+        root = _root_of(self._py_file)
+        return ("polygeo-kernel-sources", str(root), sources_hash(root))
+
+    @classmethod
+    def from_function(cls, py_func, py_file):
+        if _root_of(py_file) is None:
+            return None
+        return super().from_function(py_func, py_file)
+
+
+def _stamped(base: type | None) -> type | None:
+    if base is None:
+        return None
+    return type(f"PackageStamped{base.__name__.lstrip('_')}", (_PackageStamp, base), {})
+
+
+@functools.lru_cache(maxsize=1)
+def locator_classes() -> tuple[type, ...]:
+    """The stamped variants of numba's file-backed locators, in numba's order."""
+    bases = (
+        _numba_locator("UserProvidedCacheLocator", "_UserProvidedCacheLocator"),
+        _numba_locator("InTreeCacheLocator", "_InTreeCacheLocator"),
+        _numba_locator("UserWideCacheLocator", "_UserWideCacheLocator"),
+    )
+    return tuple(c for c in map(_stamped, bases) if c is not None)
+
+
+def install(root: str | os.PathLike) -> None:
+    """Key numba's cache of the kernels under ``root`` on all their sources (idempotent).
+
+    Must run before the kernels are decorated (numba picks a kernel's locator then).
 
     Parameters
     ----------
     root : str or path-like
-        The package folder (its ``__pycache__`` holds the stamp).
-
-    Returns
-    -------
-    int
-        Number of cache files deleted (0 when the stamp matches, or when the folder is not
-        writable: nothing is done then).
+        The package folder.
     """
-    if os.environ.get("NUMBA_CACHE_DIR"):
-        return 0
-    root = Path(root)
-    stamp = root / "__pycache__" / STAMP_NAME
-    try:
-        digest = sources_hash(root)
-        if stamp.is_file() and stamp.read_text().strip() == digest:
-            return 0
-        n = 0
-        for cache in root.rglob("__pycache__"):
-            for f in list(cache.glob("*.nbi")) + list(cache.glob("*.nbc")):
-                f.unlink()
-                n += 1
-        stamp.parent.mkdir(exist_ok=True)
-        tmp = stamp.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_text(digest + "\n")
-        os.replace(tmp, stamp)
-        return n
-    except OSError:  # read-only install, a concurrent process: leave everything as it is
-        return 0
+    r = Path(root).resolve()
+    if r not in _ROOTS:
+        _ROOTS.append(r)
+    ours = locator_classes()
+    current = list(_CACHE_IMPL._locator_classes)
+    if current[: len(ours)] != list(ours):
+        _CACHE_IMPL._locator_classes = [*ours, *(c for c in current if c not in ours)]

@@ -27,6 +27,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from .. import _numba_util  # noqa: F401  (cache keyed on all kernel sources; threading layer)
+
 __all__: list[str] = []
 
 _X0, _Y0, _X1, _Y1, _X2, _Y2 = 0, 1, 2, 3, 4, 5
