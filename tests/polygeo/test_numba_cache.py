@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from polygeo._numba_cache import sources_hash
 
 _A = "import numba as nb\n\n\n@nb.njit(cache=True, inline='always')\ndef g(x):\n    return x + {}\n"
@@ -41,6 +43,7 @@ def _call(site: Path, pkg: Path, ours: bool) -> list:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow  # seven interpreters importing numba and compiling
 def test_change_of_an_inlined_kernel_in_another_module_recompiles(tmp_path):
     site = tmp_path / "site"
     ours, plain = _package(site, "kpkg"), _package(site, "kplain")
