@@ -137,7 +137,162 @@ def chart_solver(data: dict, path: Path) -> None:
     plt.close(fig)
 
 
-SECTIONS = {"solver": (section_solver, chart_solver)}
+# ------------------------------------------------------------------ independent simulator
+
+# Run by the interpreter given with --newton-python (an environment with newton >= 1.8 and
+# warp-lang; never a dependency of polygeo). argv: n, seconds, out.npy, contact ke, substeps.
+NEWTON_CHILD = r"""
+import json, sys, time
+import numpy as np
+import warp as wp
+import newton
+
+n, T, out = int(sys.argv[1]), float(sys.argv[2]), sys.argv[3]
+ke, sub = float(sys.argv[4]), int(sys.argv[5])
+u, v = np.meshgrid(np.linspace(-0.5, 0.5, n), np.linspace(-0.5, 0.5, n), indexing="ij")
+verts = np.stack([u.ravel(), v.ravel(), np.zeros(n * n)], 1)
+a = np.array([i * n + j for i in range(n - 1) for j in range(n - 1)])
+faces = np.concatenate([np.stack([a, a + n, a + 1], 1), np.stack([a + 1, a + n, a + n + 1], 1)])
+h, rho, E, nu = 4.7e-4, 426.0, 0.7e5, 0.485
+mu = E / (2 * (1 + nu)) * h  # N/m (newton's membrane is Neo-Hookean with these moduli)
+lam = E * nu / (1 - nu * nu) * h
+kb = 50 * E * h**3 / (12 * (1 - nu * nu))
+edge_ke = kb / (4 / (n - 1))  # newton: ke l theta^2 / 2; ours: kb l^2 / (8 (A0 + A1)) theta^2
+wp.config.quiet = True
+b = newton.ModelBuilder()
+b.add_shape_sphere(body=-1, xform=wp.transform(wp.vec3(0.0, 0.0, 0.0), wp.quat_identity()),
+                   radius=0.3)
+b.add_cloth_mesh(pos=wp.vec3(0.0, 0.0, 0.302), rot=wp.quat_identity(), scale=1.0,
+                 vel=wp.vec3(0.0, 0.0, 0.0), vertices=[wp.vec3(*p) for p in verts],
+                 indices=faces.ravel().tolist(), density=rho * h, tri_ke=mu, tri_ka=lam,
+                 tri_kd=0.0, edge_ke=edge_ke, edge_kd=0.0, particle_radius=0.002)
+c = (n // 2) * n + n // 2
+b.particle_mass[c] = 0.0
+b.particle_flags[c] = b.particle_flags[c] & ~newton.ParticleFlags.ACTIVE
+b.color(include_bending=True)
+model = b.finalize(device="cpu")
+model.soft_contact_ke = ke
+model.soft_contact_kd = 1.0e-2
+model.soft_contact_mu = 0.0  # frictionless, as our contact
+solver = newton.solvers.SolverVBD(model=model, iterations=10)
+s0, s1 = model.state(), model.state()
+ctrl = model.control()
+pipe = newton.CollisionPipeline(model)
+contacts = pipe.contacts()
+fps = 60
+dt = 1.0 / fps / sub
+t0 = time.perf_counter()
+for _ in range(int(T * fps) * sub):
+    s0.clear_forces()
+    pipe.collide(s0, contacts)
+    solver.step(s0, s1, ctrl, contacts, dt)
+    s0, s1 = s1, s0
+wall = time.perf_counter() - t0
+np.save(out, s0.particle_q.numpy().astype(np.float64))
+speed = float(np.linalg.norm(s0.particle_qd.numpy(), axis=1).max())
+print(json.dumps({"seconds": wall, "frames": int(T * fps), "substeps": sub,
+                  "max_speed_m_s": speed}))
+"""
+
+
+def _ours_pinned_sheet(n: int, seconds: float) -> tuple[np.ndarray, float, np.ndarray, float]:
+    import torch
+
+    from draping import physics, reference
+
+    v, f = grid_sheet(n)
+    rest = physics.rest_state(v, f)
+    x0 = v + np.array([0.0, 0.0, 0.302])
+    centre = (n // 2) * n + n // 2
+    q = reference.sphere_query([0.0, 0.0, 0.0], 0.3)
+    t0 = time.perf_counter()
+    st = reference.drape_static(
+        rest, x0, q, reference.SolverSettings(tol=1e-4, max_iter=3000), pinned=[centre]
+    )
+    t_static = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    res = reference.drape_sequence(
+        rest,
+        x0,
+        [q] * int(seconds * 30),
+        1 / 30,
+        reference.SolverSettings(tol=1e-3),
+        pinned=[centre],
+    )
+    t_dyn = time.perf_counter() - t0
+    del torch
+    return st.x.numpy(), t_static, res[-1].x.numpy(), t_dyn
+
+
+def section_newton(quick: bool, save, newton_python: str | None = None) -> dict:
+    """A centre-pinned sheet dropped on a sphere: our solver against newton's VBD cloth."""
+    import subprocess
+    import sys
+    import tempfile
+
+    n, seconds = (15, 1.0) if quick else (21, 3.0)
+    data = {"vertices": n * n, "sim_seconds": seconds, "sphere_radius_m": 0.3, "sheet_m": 1.0}
+    if not newton_python:
+        data["skipped"] = "no --newton-python interpreter given"
+        return data
+    with tempfile.TemporaryDirectory() as tmp:
+        script = Path(tmp) / "newton_sheet.py"
+        script.write_text(NEWTON_CHILD)
+        out = Path(tmp) / "q.npy"
+        proc = subprocess.run(
+            [newton_python, str(script), str(n), str(seconds), str(out), "1000", "5"],
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        if proc.returncode != 0:
+            data["skipped"] = "newton run failed: " + proc.stderr[-500:]
+            return data
+        data["newton"] = json.loads(proc.stdout.strip().splitlines()[-1])
+        q_newton = np.load(out)
+    x_static, t_static, x_dyn, t_dyn = _ours_pinned_sheet(n, seconds)
+    data["ours_static_seconds"] = t_static
+    data["ours_dynamic_seconds"] = t_dyn
+    for name, x in (("static", x_static), ("dynamic", x_dyn)):
+        d = np.linalg.norm(x - q_newton, axis=1) * 100.0
+        data[f"cm_to_newton_{name}"] = {
+            "mean": float(d.mean()),
+            "median": float(np.median(d)),
+            "max": float(d.max()),
+        }
+    d = np.linalg.norm(x_static - x_dyn, axis=1) * 100.0
+    data["cm_ours_static_to_dynamic"] = {"mean": float(d.mean()), "max": float(d.max())}
+    del sys
+    return data
+
+
+def chart_newton(data: dict, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    if "cm_to_newton_static" in data:
+        names = ["ours static\nvs newton", "ours dynamic\nvs newton", "ours static\nvs dynamic"]
+        means = [
+            data["cm_to_newton_static"]["mean"],
+            data["cm_to_newton_dynamic"]["mean"],
+            data["cm_ours_static_to_dynamic"]["mean"],
+        ]
+        maxs = [
+            data["cm_to_newton_static"]["max"],
+            data["cm_to_newton_dynamic"]["max"],
+            data["cm_ours_static_to_dynamic"]["max"],
+        ]
+        ax.bar(names, means, label="mean")
+        ax.plot(names, maxs, "k^", label="max")
+        ax.set_ylabel("vertex distance (cm)")
+        ax.legend()
+    ax.set_title(f"sheet on sphere, {data['vertices']} vertices")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+SECTIONS = {"solver": (section_solver, chart_solver), "newton": (section_newton, chart_newton)}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -150,6 +305,11 @@ def main(argv: list[str] | None = None) -> None:
     )
     p.add_argument("--quick", action="store_true", help="smallest sizes only")
     p.add_argument("--out", type=Path, default=RESULTS, help="results folder")
+    p.add_argument(
+        "--newton-python",
+        default=None,
+        help="python of an environment with newton (section newton)",
+    )
     a = p.parse_args(argv)
     names = [s.strip() for s in a.sections.split(",") if s.strip()]
     bad = [s for s in names if s not in SECTIONS]
@@ -172,7 +332,8 @@ def main(argv: list[str] | None = None) -> None:
             record[name] = partial
             path.write_text(json.dumps(record, indent=1))
 
-        data = run(a.quick, save)
+        kw = {"newton_python": a.newton_python} if name == "newton" else {}
+        data = run(a.quick, save, **kw)
         save(data)
         chart(data, a.out / f"bm_drape_{name}.png")
     print(f"wrote {path}")

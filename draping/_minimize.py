@@ -121,10 +121,18 @@ def evaluate(
         want_hess,
         blocks,
         st.tri_map,
+        want_grad=want_grad,
     )
     if ob.bending:
         eb, gb, _ = fused.bending(
-            x, st.quads, st.weight, m.bending_stiffness, want_hess, blocks, st.hinge_map
+            x,
+            st.quads,
+            st.weight,
+            m.bending_stiffness,
+            want_hess,
+            blocks,
+            st.hinge_map,
+            want_grad=want_grad,
         )
         e += eb
         g += gb
@@ -186,7 +194,7 @@ def laplacian_factor(ob: Objective, dt: float) -> Callable[[np.ndarray], np.ndar
     if not ob.free.all():
         keep = sp.diags(ob.free.astype(np.float64))
         a = keep @ a @ keep + sp.diags((~ob.free).astype(np.float64))
-    lu = spla.splu(a.tocsc())
+    lu = spla.splu(a.tocsc(), permc_spec="MMD_AT_PLUS_A")
     return lambda r: lu.solve(np.ascontiguousarray(r.reshape(n, 3)))
 
 

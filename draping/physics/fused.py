@@ -51,7 +51,9 @@ def hinge_quads(faces: np.ndarray, hinge_edges: np.ndarray, hinge_faces: np.ndar
 
 
 @nb.njit(cache=True)
-def _membrane(x, faces, dm_inv, area, h, mu, lam, grad, blocks, bmap, want_hess, project):
+def _membrane(
+    x, faces, dm_inv, area, h, mu, lam, grad, blocks, bmap, want_grad, want_hess, project
+):
     energy = 0.0
     nf = faces.shape[0]
     fm = np.empty((3, 2))
@@ -81,6 +83,8 @@ def _membrane(x, faces, dm_inv, area, h, mu, lam, grad, blocks, bmap, want_hess,
         s00 = 2 * mu * e00 + lam * tr
         s01 = 2 * mu * e01
         s11 = 2 * mu * e11 + lam * tr
+        if not want_grad:
+            continue
         # gradient: dE/dx_v = w * P c_v, P = F S
         for i in range(3):
             p0 = fm[i, 0] * s00 + fm[i, 1] * s01
@@ -149,7 +153,7 @@ def _cross(u, v, out):  # pragma: no cover
 
 
 @nb.njit(cache=True)
-def _bending(x, quads, weight, kb, grad, blocks, bmap, want_hess):  # pragma: no cover
+def _bending(x, quads, weight, kb, grad, blocks, bmap, want_grad, want_hess):  # pragma: no cover
     energy = 0.0
     nh = quads.shape[0]
     g = np.empty((4, 3))
@@ -182,6 +186,8 @@ def _bending(x, quads, weight, kb, grad, blocks, bmap, want_hess):  # pragma: no
         th = np.arctan2(s, co)
         k = kb * weight[t]
         energy += k * th * th
+        if not want_grad:
+            continue
         ta = (ea[0] * e[0] + ea[1] * e[1] + ea[2] * e[2]) / le2
         tb = (eb[0] * e[0] + eb[1] * e[1] + eb[2] * e[2]) / le2
         for i in range(3):
@@ -230,6 +236,7 @@ def membrane(
     blocks: np.ndarray | None = None,
     block_map: np.ndarray | None = None,
     project: bool = True,
+    want_grad: bool = True,
 ) -> tuple[float, np.ndarray, np.ndarray | None]:
     """StVK membrane energy (J), its gradient (V, 3) (N) and PSD Hessians.
 
@@ -254,6 +261,8 @@ def membrane(
     project : bool
         Positive part of the stress in the Hessian (positive semi-definite); False gives the
         exact Hessian, indefinite under compression.
+    want_grad : bool
+        Accumulate the gradient (else it comes back as zeros; energy-only line searches).
 
     Returns
     -------
@@ -270,7 +279,19 @@ def membrane(
     else:
         blocks, bmap, own = np.zeros((0, 3, 3)), np.zeros((0, 3, 3), dtype=np.int64), False
     e = _membrane(
-        x, faces, dm_inv, area, thickness, mu, lam, grad, blocks, bmap, want_hess, project
+        x,
+        faces,
+        dm_inv,
+        area,
+        thickness,
+        mu,
+        lam,
+        grad,
+        blocks,
+        bmap,
+        want_grad or want_hess,
+        want_hess,
+        project,
     )
     if not want_hess:
         return float(e), grad, None
@@ -291,6 +312,7 @@ def bending(
     want_hess: bool = False,
     blocks: np.ndarray | None = None,
     block_map: np.ndarray | None = None,
+    want_grad: bool = True,
 ) -> tuple[float, np.ndarray, np.ndarray | None]:
     """Dihedral bending energy (J) with flat rest, its gradient and Gauss-Newton Hessians.
 
@@ -309,6 +331,8 @@ def bending(
     blocks : (NB, 3, 3) float64, optional
         Sparse blocks the Hessian is added into, at ``block_map (H, 4, 4)``.
     block_map : (H, 4, 4) int64, optional
+    want_grad : bool
+        Accumulate the gradient (else zeros).
 
     Returns
     -------
@@ -323,7 +347,7 @@ def bending(
         blocks, bmap, own = _hess_out(blocks, block_map, nh, 4)
     else:
         blocks, bmap, own = np.zeros((0, 3, 3)), np.zeros((0, 4, 4), dtype=np.int64), False
-    e = _bending(x, quads, weight, kb, grad, blocks, bmap, want_hess)
+    e = _bending(x, quads, weight, kb, grad, blocks, bmap, want_grad or want_hess, want_hess)
     if not want_hess:
         return float(e), grad, None
     if own:
