@@ -1,10 +1,12 @@
 """The jets part of ``polygeo demo``: its table is computed against analytic truth."""
 
 import numpy as np
+import pytest
 
 from polygeo.cli import main
 
 
+@pytest.mark.slow
 def test_demo_jets_table_against_torus_truth(capsys):
     rc = main(["demo", "--only", "jets", "--points", "3000", "--k", "30"])
     assert rc == 0

@@ -49,6 +49,7 @@ def test_cli_point_cloud_npz_and_ply(tmp_path, capsys):
     assert "status 0 (ok): 1500" in text and "mean_curvature" in text and "points/s" in text
 
 
+@pytest.mark.slow
 def test_cli_mesh_with_flipped_faces_and_auto(tmp_path, capsys):
     m = sy.torus_mesh(40)
     f = m.faces.copy()

@@ -18,6 +18,7 @@ def sheet_ply(tmp_path):
     return path, v, f
 
 
+@pytest.mark.slow
 def test_polyfit_command_writes_patches_mesh_and_summary(tmp_path, sheet_ply, capsys):
     path, v, f = sheet_ply
     out = tmp_path / "patches.npz"
@@ -50,6 +51,7 @@ def test_polyfit_command_writes_patches_mesh_and_summary(tmp_path, sheet_ply, ca
     np.testing.assert_allclose(res.points, rv.numpy(), atol=1e-6)
 
 
+@pytest.mark.slow
 def test_polyfit_auto_order_optimize_and_target(tmp_path, sheet_ply, capsys):
     path, _, _ = sheet_ply
     out = tmp_path / "p.npz"

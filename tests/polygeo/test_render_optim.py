@@ -1,6 +1,7 @@
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from polygeo.render import Camera, RasterSettings, checkerboard, render, rgb_loss, silhouette_loss
@@ -30,6 +31,7 @@ def _pose(verts, r, t, log_s):
     return torch.exp(log_s) * (verts.unsqueeze(-2) * _rodrigues(r)).sum(-1) + t
 
 
+@pytest.mark.slow
 def test_gradient_descent_recovers_pose_and_scale():
     torch.manual_seed(0)
     verts_np, faces, uvs = _sheet(12)

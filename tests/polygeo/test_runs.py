@@ -191,6 +191,7 @@ class _Settings:
     extra: dict = dataclasses.field(default_factory=lambda: {"b": 1, "a": None})
 
 
+@pytest.mark.slow
 def test_fingerprint_stable_across_processes():
     fp = fingerprint(_Settings())
     code = (

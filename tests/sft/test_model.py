@@ -217,6 +217,7 @@ def _hinge(verts, angle, width=0.02):
     return np.stack([np.interp(a, s, x), b, 0.4 + np.interp(a, s, z)], 1)
 
 
+@pytest.mark.slow
 def test_patch_rigid_motions_fit_a_sharp_fold():
     # a 160-degree fold fitted in 3D (no images): the two halves become the two patches,
     # their rigid motions take the halves apart and the jets bend the crease; the boundary
@@ -297,6 +298,7 @@ def test_auto_patches_warns_when_the_cap_leaves_steep_patches():
         JetTemplate.fit(v, f, 4, "auto", max_patches=0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("patches", [1, 3])
 def test_params_for_projects_surfaces_onto_the_model(patches):
     v, f = sheet(25, 19, bend=3.0)

@@ -21,6 +21,7 @@ def S(**options) -> SfTSettings:
 FAST = {"patience": 20, "max_iterations": 60, "overlays": 0, "quiet": True}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["polysft", "vertex"])
 def test_small_deformation_beats_fixed_template(make_sequence, tmp_path, method):
     seq = make_sequence("small", 10, size=64, grid=(12, 9))
@@ -34,6 +35,7 @@ def test_small_deformation_beats_fixed_template(make_sequence, tmp_path, method)
         assert np.mean([r["e_n"] for r in rows]) < np.mean([r["e_n_template"] for r in rows])
 
 
+@pytest.mark.slow
 def test_rigid_sequence_recovered_by_rigid_parameters(make_sequence, tmp_path):
     seq = load_sequence(make_sequence("rigid", 4, size=64, grid=(12, 9)))
     st = S(freeze=("d_alpha", "d_uv"), lr_rigid=2e-3, **FAST)
@@ -50,6 +52,7 @@ def test_rigid_sequence_recovered_by_rigid_parameters(make_sequence, tmp_path):
     np.testing.assert_allclose(d1, d0, atol=2e-6)  # float32 PLY
 
 
+@pytest.mark.slow
 def test_resume_equals_uninterrupted(make_sequence, tmp_path):
     seq = load_sequence(make_sequence("small", 4, size=64, grid=(12, 9)))
     st = S(patience=5, max_iterations=12, overlays=0)
@@ -73,6 +76,7 @@ def test_resume_equals_uninterrupted(make_sequence, tmp_path):
         run_sft(seq, tmp_path / "cut", S(patience=6, max_iterations=12))
 
 
+@pytest.mark.slow
 def test_refit_splits_a_rolling_sheet_and_resumes(make_sequence, tmp_path):
     # a sheet rolling up: once its one patch is steep past refit_tilt the surface of that
     # frame becomes the template of a new model with several patches; the meshes go on from
