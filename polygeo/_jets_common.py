@@ -4,6 +4,10 @@ Package-private ground floor of the jet fit: it imports neither :mod:`polygeo.je
 :mod:`polygeo._jets_numba`, so the kernels (and :mod:`polygeo.diffgeo`,
 :mod:`polygeo.estimate`) read the same constants without importing the public module they
 serve (no import cycle).
+
+The numba kernels freeze ``COLLINEAR_TOL`` into their compiled code: this file mentions
+numba so that :mod:`polygeo._numba_cache` counts it among the kernel sources whose change
+invalidates the on-disk kernel cache.
 """
 
 from __future__ import annotations
