@@ -70,3 +70,13 @@ def test_connected_components_match_a_breadth_first_search():
 def test_vertex_adjacency_bad_input(args, err, msg):
     with pytest.raises(err, match=msg):
         mesh.vertex_adjacency(*args)
+
+
+def test_edges_of_degenerate_faces():
+    f = np.array([[0, 0, 0]])
+    assert mesh.edges(f).shape == (0, 2)
+    assert mesh.boundary_edges(f).shape == (0, 2)
+    e, eid, count = mesh.edge_faces(np.array([[0, 1, 2], [2, 2, 3]]))
+    np.testing.assert_array_equal(e, [[0, 1], [0, 2], [1, 2], [2, 3]])
+    np.testing.assert_array_equal(eid, [0, 2, 1, -1, 3, 3])
+    np.testing.assert_array_equal(count, [1, 1, 1, 2])
