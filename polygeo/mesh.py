@@ -207,15 +207,25 @@ def _faces(faces: Any, n_vertices: int | None = None) -> tuple[np.ndarray, bool]
     return check_faces(faces, n_vertices).cpu().numpy(), is_numpy_like(faces)
 
 
-def _unique_pairs(pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _unique_pairs(pairs: np.ndarray, inverse: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
     """``np.unique(pairs, axis=0, return_inverse=True)`` for (n, 2) non-negative int64 rows.
 
-    Rows are encoded as one int64 key ``a * m + b`` (lexicographic order preserved), which is
-    about 100 times faster than NumPy's row-wise unique on mesh-sized inputs.
+    Rows are encoded as one int64 key ``a * m + b`` (lexicographic order preserved) and sorted
+    once, which is about 100 times faster than NumPy's row-wise unique on mesh-sized inputs.
     """
     m = int(pairs.max()) + 1
-    keys, inv = np.unique(pairs[:, 0] * m + pairs[:, 1], return_inverse=True)
-    return np.stack([keys // m, keys % m], axis=1), inv.reshape(-1)
+    key = pairs[:, 0] * m + pairs[:, 1]
+    order = np.argsort(key, kind="stable") if inverse else None
+    ks = key[order] if inverse else np.sort(key)
+    first = np.empty(ks.shape, bool)
+    first[:1] = True
+    np.not_equal(ks[1:], ks[:-1], out=first[1:])
+    keys = ks[first]
+    inv = None
+    if inverse:
+        inv = np.empty(key.shape, np.int64)
+        inv[order] = np.cumsum(first) - 1
+    return np.stack([keys // m, keys % m], axis=1), inv
 
 
 def _out(arr: np.ndarray, numpy_in: bool) -> Any:
@@ -274,9 +284,10 @@ def edges(faces: Any) -> Any:
         Non-integer faces.
     """
     f, numpy_in = _faces(faces)
-    e = np.sort(f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    h = f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    e = np.stack([np.minimum(h[:, 0], h[:, 1]), np.maximum(h[:, 0], h[:, 1])], axis=1)
     e = e[e[:, 0] != e[:, 1]]
-    e = _unique_pairs(e)[0] if e.size else np.zeros((0, 2), dtype=np.int64)
+    e = _unique_pairs(e, inverse=False)[0] if e.size else np.zeros((0, 2), dtype=np.int64)
     return _out(e.astype(np.int64), numpy_in)
 
 
