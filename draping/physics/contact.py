@@ -13,7 +13,8 @@ import torch
 from polygeo import covariance, neighbors
 from polygeo.checks import check_int, check_positive
 
-from .rest import RestState, _like, _positions, _reduce
+from ._common import like, positions, reduce_terms
+from .rest import RestState
 
 __all__ = [
     "collision_energy",
@@ -66,7 +67,7 @@ def collision_energy(
     k = check_positive(stiffness, "stiffness", strict=False)
     e = check_positive(eps, "eps", strict=False)
     pen = torch.clamp(e - distance, min=0.0)
-    return _reduce(k * pen**3, reduction)
+    return reduce_terms(k * pen**3, reduction)
 
 
 def plane_distance(x: torch.Tensor, anchor: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
@@ -131,7 +132,7 @@ def repulsion_pairs(x: Any, rest: RestState, delta: float, k: int = 16) -> torch
     delta = check_positive(delta, "delta")
     k = check_int(k, "k", low=1)
     xt = torch.as_tensor(x).detach().cpu().to(torch.float64)
-    _positions(xt, rest.n_vertices)
+    positions(xt, rest.n_vertices)
     nb = neighbors.knn(xt.numpy(), int(k) + rest.ring_index.shape[1])
     idx = np.asarray(nb.index)
     ok = np.asarray(nb.mask) & (np.asarray(nb.distance) < delta)
@@ -182,7 +183,7 @@ def repulsion_energy(
     w = check_positive(weight, "weight", strict=False)
     if pairs.ndim != 2 or pairs.shape[0] != x.shape[-2]:
         raise ValueError(f"pairs: expected shape ({x.shape[-2]}, k), got {tuple(pairs.shape)}")
-    _positions(x, pairs.shape[0])
+    positions(x, pairs.shape[0])
     ok = pairs >= 0
     d = x[..., pairs.clamp_min(0), :] - x[..., :, None, :]  # (..., V, k, 3)
     r2 = (d * d).sum(-1).clamp_min((1e-3 * delta) ** 2) / (delta * delta)
@@ -223,11 +224,11 @@ def inextensibility_energy(
     ValueError
         Bad shapes, negative ``k_ext``.
     """
-    _positions(x, rest.n_vertices)
+    positions(x, rest.n_vertices)
     cov = covariance.vertex_covariance(x, rest.ring_index, rest.ring_mask)
     per = covariance.inextensibility_residual(
         cov,
-        _like(rest.ring_sigma, x),
+        like(rest.ring_sigma, x),
         k_ext,
         weight=check_positive(weight, "weight", strict=False),
         reduction="none",

@@ -12,7 +12,8 @@ import torch
 from polygeo import mesh
 from polygeo.checks import check_positive
 
-from .rest import GRAVITY, Material, RestState, _like, _positions, _reduce
+from ._common import like, positions, reduce_terms
+from .rest import GRAVITY, Material, RestState
 
 __all__ = [
     "deformation_gradient",
@@ -50,11 +51,11 @@ def deformation_gradient(x: torch.Tensor, rest: RestState) -> torch.Tensor:
     TypeError
         ``x`` not a floating tensor.
     """
-    _positions(x, rest.n_vertices)
+    positions(x, rest.n_vertices)
     f = rest.faces
     x0 = x[..., f[:, 0], :]
     ds = torch.stack([x[..., f[:, 1], :] - x0, x[..., f[:, 2], :] - x0], dim=-1)  # (..., F, 3, 2)
-    return ds @ _like(rest.dm_inv, x)
+    return ds @ like(rest.dm_inv, x)
 
 
 def green_strain(x: torch.Tensor, rest: RestState) -> torch.Tensor:
@@ -117,7 +118,7 @@ def stvk_energy(
     e = green_strain(x, rest)
     tr = e[..., 0, 0] + e[..., 1, 1]
     psi = m.lame_mu * (e * e).sum((-1, -2)) + 0.5 * m.lame_lambda * tr * tr  # Pa
-    return _reduce(m.thickness * _like(rest.area, x) * psi, reduction)
+    return reduce_terms(m.thickness * like(rest.area, x) * psi, reduction)
 
 
 # ---------------------------------------------------------------------- bending
@@ -166,7 +167,7 @@ def bending_energy(
     TypeError
         ``x`` not a floating tensor.
     """
-    _positions(x, rest.n_vertices)
+    positions(x, rest.n_vertices)
     kb = (
         rest.material.bending_stiffness
         if stiffness is None
@@ -174,8 +175,8 @@ def bending_energy(
     )
     th = _angles(x, rest)
     if rest_angle:
-        th = th - _like(rest.hinges.angle, x)
-    return _reduce(kb * _like(rest.hinge_weight, x) * th * th, reduction)
+        th = th - like(rest.hinges.angle, x)
+    return reduce_terms(kb * like(rest.hinge_weight, x) * th * th, reduction)
 
 
 def gaps_bending_energy(
@@ -215,7 +216,7 @@ def gaps_bending_energy(
     TypeError
         ``x`` not a floating tensor.
     """
-    _positions(x, rest.n_vertices)
+    positions(x, rest.n_vertices)
     a = torch.as_tensor(alpha, dtype=x.dtype, device=x.device)
     nh = rest.hinge_weight.shape[0]
     if a.ndim > 1 or (a.ndim == 1 and a.shape[0] != nh):
@@ -228,9 +229,9 @@ def gaps_bending_energy(
         else check_positive(stiffness, "stiffness", strict=False)
     )
     th = _angles(x, rest)
-    d = th - _like(rest.hinges.angle, x)
-    per = kb * _like(rest.hinge_weight, x) * (a * d * d + (1 - a) * th * th)
-    return _reduce(per, reduction)
+    d = th - like(rest.hinges.angle, x)
+    per = kb * like(rest.hinge_weight, x) * (a * d * d + (1 - a) * th * th)
+    return reduce_terms(per, reduction)
 
 
 # ---------------------------------------------------------------------- gravity, inertia
@@ -260,11 +261,11 @@ def gravity_energy(x: torch.Tensor, rest: RestState, gravity: Any = GRAVITY) -> 
     TypeError
         ``x`` not a floating tensor.
     """
-    _positions(x, rest.n_vertices)
+    positions(x, rest.n_vertices)
     g = torch.as_tensor(gravity, dtype=x.dtype, device=x.device)
     if g.shape != (3,):
         raise ValueError(f"gravity: expected shape (3,), got {tuple(g.shape)}")
-    return -((x @ g) * _like(rest.mass, x)).sum(-1)
+    return -((x @ g) * like(rest.mass, x)).sum(-1)
 
 
 def inertia_energy(
@@ -305,9 +306,9 @@ def inertia_energy(
         Non-tensor input.
     """
     n = rest.n_vertices
-    _positions(x, n)
-    _positions(x_prev, n, "x_prev")
-    _positions(v_prev, n, "v_prev")
+    positions(x, n)
+    positions(x_prev, n, "x_prev")
+    positions(v_prev, n, "v_prev")
     dt = check_positive(dt, "dt")
     d = x - x_prev - dt * v_prev
-    return ((d * d).sum(-1) * _like(rest.mass, x)).sum(-1) / (2.0 * dt * dt)
+    return ((d * d).sum(-1) * like(rest.mass, x)).sum(-1) / (2.0 * dt * dt)

@@ -156,20 +156,6 @@ class RestState:
 # ---------------------------------------------------------------------- validation
 
 
-def _positions(x: Any, n: int, name: str = "x") -> torch.Tensor:
-    """Energies take torch tensors (they are differentiated), of shape (..., n, 3)."""
-    if not isinstance(x, torch.Tensor):
-        raise TypeError(f"{name}: expected a torch tensor, got {type(x).__name__}")
-    if not x.is_floating_point():
-        raise TypeError(f"{name}: expected a floating tensor, got dtype {x.dtype}")
-    check_shape(x, name, ("...", n, 3))
-    return x
-
-
-def _like(t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    return t.to(dtype=x.dtype, device=x.device)
-
-
 # ---------------------------------------------------------------------- rest state
 
 
@@ -260,11 +246,3 @@ def rest_state(vertices: Any, faces: Any, material: Material | None = None) -> R
         ring_sigma=sigma.to(dtype),
         material=material,
     )
-
-
-def _reduce(per: torch.Tensor, reduction: str) -> torch.Tensor:
-    if reduction == "sum":
-        return per.sum(-1)
-    if reduction == "none":
-        return per
-    raise ValueError(f"reduction: expected 'sum' or 'none', got {reduction!r}")
