@@ -322,8 +322,14 @@ def main(argv: list[str] | None = None) -> None:
     for name in names:
         run, chart = SECTIONS[name]
         t0 = time.perf_counter()
-        command = f"python benchmarks/bm_drape.py --sections {name}" + (
-            " --quick" if a.quick else ""
+        command = (
+            f"python benchmarks/bm_drape.py --sections {name}"
+            + (" --quick" if a.quick else "")
+            + (
+                f" --newton-python {a.newton_python}"
+                if name == "newton" and a.newton_python
+                else ""
+            )
         )
 
         def save(partial: dict, name: str = name, t0: float = t0, command: str = command) -> None:
