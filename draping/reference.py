@@ -66,7 +66,7 @@ __all__ = [
 
 #: ``query(points (N, 3) float64 tensor) -> (distance (N,), normal (N, 3))``: signed distance to
 #: the body (m, positive outside) and outward unit normal at the closest body point; a
-#: ``draping.collision.BodyQuery`` answer (``MeshQuery.query``) is accepted too, its closest
+#: ``draping.collision.SignedDistance`` answer (``MeshQuery.query``) is accepted too, its closest
 #: points then anchor the tangent planes, and infinite distances (beyond its ``max_distance``)
 #: mean no contact.
 QueryFn = Callable[[torch.Tensor], Any]
@@ -309,7 +309,7 @@ def _planes(
         return None, None
     ans = query(x.detach())
     closest = getattr(ans, "closest", None)
-    if closest is not None:  # a draping.collision.BodyQuery
+    if closest is not None:  # a draping.collision.SignedDistance
         d, n = ans.distance, ans.normal
     else:
         d, n = ans
