@@ -14,6 +14,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..runs import atomic_write
+
 __all__ = ["NPZ_VERSION", "TENSOR_FIELDS", "save_npz", "load_npz"]
 
 #: Format version written by :func:`save_npz` and required by :func:`load_npz`.
@@ -51,11 +53,7 @@ def save_npz(path: str | os.PathLike, fields: dict[str, Any]) -> Path:
         name: (x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else x)
         for name, x in arrays.items()
     }
-    p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(p.name + ".tmp.npz")
-    np.savez_compressed(tmp, **out)
-    os.replace(tmp, p)
-    return p
+    return atomic_write(p, lambda fh: np.savez_compressed(fh, **out))
 
 
 def load_npz(path: str | os.PathLike) -> dict[str, Any]:

@@ -331,6 +331,7 @@ def test_save_load_roundtrip(tmp_path, sphere5):
     ps = PatchSet.fit(sphere5.points, sphere5.faces, n_patches=10, order="auto", max_order=4)
     path = ps.save(tmp_path / "set")
     assert path.name == "set.npz"
+    assert [p.name for p in tmp_path.iterdir()] == ["set.npz"]  # no temporary file left
     back = PatchSet.load(path)
     for name in ("scale", "rotation", "translation", "coeffs", "orders", "uv", "mask", "index",
                  "labels", "faces", "boundary_pairs"):
