@@ -19,9 +19,10 @@ How a template is made (:func:`make_garment`):
    approximate centroidal Voronoi clustering (``pyacvd``, already a dependency) to the
    requested vertex count, which gives the even triangle size cloth energies want; the
    result is cleaned to a manifold with consistent winding.
-4. **Fitting.** Alternating Taubin smoothing and projection out of the body (every vertex
-   at least the clearance away from the skin) turns the offset skin into a garment that
-   bridges the body's small hollows, then the openings' rims are smoothed along themselves.
+4. **Fitting.** Alternating Laplacian smoothing (rims along themselves) and projection out
+   of the body (every vertex at least the clearance away from the skin, less inside the
+   body's hollows) shrink-wraps the offset skin into a garment that bridges the hollows
+   (armpits, the small of the back) instead of following them.
 
 :func:`check_garment` lists what is wrong with a garment mesh (non-manifold edges or
 vertices, degenerate triangles, inconsistent winding, self-intersections, vertices inside the
@@ -40,7 +41,7 @@ import scipy.sparse as sp
 import torch
 from scipy.spatial import ConvexHull, cKDTree
 
-from polygeo.checks import check_choice, check_faces, check_int, check_positive
+from polygeo.checks import check_choice, check_faces, check_int
 
 __all__ = [
     "GARMENTS",
@@ -52,10 +53,21 @@ __all__ = [
     "load_garment",
     "fit_garment_to_shape",
     "crossing_pairs",
+    "DEFAULT_VERTICES",
+    "garment",
+    "template_path",
+    "save_garment",
+    "read_garment_npz",
 ]
 
 #: Garment names accepted by :func:`make_garment`.
 GARMENTS = ("tshirt", "tank", "longsleeve", "dress", "skirt", "pants", "shorts")
+
+#: Vertex count of the templates shipped in ``draping/data`` (made for the default Anny shape
+#: by ``datasets/make_garments.py``).
+DEFAULT_VERTICES = 5000
+
+_DATA = Path(__file__).resolve().parent / "data"
 
 
 @dataclass(frozen=True)
@@ -70,9 +82,11 @@ class GarmentSpec:
         Lower edge of a top, as a fraction of the hip-to-neck height above the hip joints.
     neck_drop : float
         Neckline depth in front below the neck joint, fraction of the hip-to-neck height.
+    neck_width : float
+        Radius of the neck hole about the neck's axis, fraction of the hip-to-neck height.
     sleeve : float
-        Sleeve length along the arm (shoulder joint 0, wrist 1); 0 for no sleeve. A top
-        with no sleeve also leaves the shoulders' arm side free (arm holes).
+        Sleeve length along the arm (shoulder joint 0, wrist 1); a small value makes the
+        arm holes of a sleeveless top (the cloth over the shoulder holds it up).
     waist : float
         Upper edge of a skirt or of pants, fraction of the hip-to-neck height above the hips.
     leg : float
@@ -88,6 +102,7 @@ class GarmentSpec:
     top: bool = False
     hem: float = 0.0
     neck_drop: float = 0.1
+    neck_width: float = 0.2
     sleeve: float = 0.0
     waist: float = 0.25
     leg: float = 0.0
@@ -99,9 +114,11 @@ class GarmentSpec:
 #: The template of each garment name.
 SPECS: dict[str, GarmentSpec] = {
     "tshirt": GarmentSpec(top=True, hem=0.02, sleeve=0.32),
-    "tank": GarmentSpec(top=True, hem=0.02, neck_drop=0.18),
+    "tank": GarmentSpec(top=True, hem=0.02, neck_drop=0.18, neck_width=0.15, sleeve=0.05),
     "longsleeve": GarmentSpec(top=True, hem=0.02, sleeve=0.88),
-    "dress": GarmentSpec(top=True, waist=0.3, neck_drop=0.16, skirt=0.55),
+    "dress": GarmentSpec(
+        top=True, waist=0.3, neck_drop=0.16, neck_width=0.15, sleeve=0.05, skirt=0.55
+    ),
     "skirt": GarmentSpec(waist=0.3, skirt=0.5),
     "pants": GarmentSpec(waist=0.3, leg=0.9, clearance=0.03),
     "shorts": GarmentSpec(waist=0.3, leg=0.35, clearance=0.03),
@@ -132,9 +149,6 @@ class Garment:
 
 # --------------------------------------------------------------------------- body landmarks
 
-
-#: Radius of the neck hole, fraction of the hip-to-neck height.
-_NECK_RADIUS = 0.2
 
 _ARM_BONES = ("clavicle", "shoulder", "upperarm", "lowerarm", "wrist", "finger", "metacarpal")
 _LEG_BONES = ("upperleg", "lowerleg", "foot", "toe")
@@ -168,7 +182,9 @@ class _Body:
 
     @property
     def hip(self) -> np.ndarray:
-        return 0.5 * (self.find("upperleg01.L", "upperleg.L") + self.find("upperleg01.R", "upperleg.R"))
+        return 0.5 * (
+            self.find("upperleg01.L", "upperleg.L") + self.find("upperleg01.R", "upperleg.R")
+        )
 
     @property
     def neck(self) -> np.ndarray:
@@ -229,9 +245,15 @@ def _boundary_edges(f: np.ndarray) -> np.ndarray:
 
 def _adjacency(f: np.ndarray, n: int) -> sp.csr_matrix:
     e = _edges(f)
-    a = sp.csr_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), (n, n))
+    a = sp.csr_matrix(
+        (np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), (n, n)
+    )
     a.data[:] = 1.0
     return a
+
+
+def _extent(v: np.ndarray) -> float:
+    return float(np.linalg.norm(v.max(0) - v.min(0)))
 
 
 def _largest_component(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -278,7 +300,7 @@ def _region(b: _Body, spec: GarmentSpec) -> tuple[np.ndarray, np.ndarray]:
         # (front is -y, the way the feet point), so the neckline dips in front.
         n = np.array([0.0, -0.5, 1.0])
         origin = b.neck - np.array([0.0, 0.0, spec.neck_drop * h])
-        near_neck = np.linalg.norm(v[:, :2] - b.neck[:2], axis=1) < _NECK_RADIUS * h
+        near_neck = np.linalg.norm(v[:, :2] - b.neck[:2], axis=1) < spec.neck_width * h
         keep &= ~(near_neck & ((v - origin) @ n > 0))
         for side in ("L", "R"):
             arm = part == f"arm.{side}"
@@ -330,8 +352,11 @@ def _skirt_rings(b: _Body, spec: GarmentSpec, top_loop: np.ndarray | None, step:
     zs = np.linspace(z_top, z_hem, n_rings)
     if top_loop is None:
         m = None
-        radius_probe = _hull_radius(body[np.abs(body[:, 2] - z_top) < step][:, :2], centre,
-                                    np.linspace(0, 2 * np.pi, 64, endpoint=False))
+        radius_probe = _hull_radius(
+            body[np.abs(body[:, 2] - z_top) < step][:, :2],
+            centre,
+            np.linspace(0, 2 * np.pi, 64, endpoint=False),
+        )
         m = max(24, int(math.ceil(2 * np.pi * radius_probe.mean() / step)))
         angles = np.linspace(0, 2 * np.pi, m, endpoint=False)
     else:
@@ -347,8 +372,9 @@ def _skirt_rings(b: _Body, spec: GarmentSpec, top_loop: np.ndarray | None, step:
         if r_prev is not None:  # hangs: never narrower than above, widening by the flare
             r = np.maximum(r, r_prev + spec.flare * (zs[i - 1] - z))
         r_prev = r
-        ring = np.stack([centre[0] + r * np.cos(angles), centre[1] + r * np.sin(angles),
-                         np.full_like(r, z)], 1)
+        ring = np.stack(
+            [centre[0] + r * np.cos(angles), centre[1] + r * np.sin(angles), np.full_like(r, z)], 1
+        )
         rings.append(ring)
     rings = np.stack(rings)
     if top_loop is not None:
@@ -389,17 +415,19 @@ def _loops(f: np.ndarray) -> list[np.ndarray]:
 # ------------------------------------------------------------------------------ remeshing
 
 
-def _remesh(v: np.ndarray, f: np.ndarray, n_vertices: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+def _remesh(
+    v: np.ndarray, f: np.ndarray, n_vertices: int, seed: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Even triangles by approximate centroidal Voronoi clustering (pyacvd), then cleaned."""
     import pyacvd
     import pyvista as pv
 
-    level = max(0, int(math.ceil(math.log(max(20.0 * n_vertices / len(f), 1.0), 4))))
+    level = max(0, int(math.ceil(math.log(max(8.0 * n_vertices / len(f), 1.0), 4))))
     mesh = pv.PolyData(v, np.hstack([np.full((len(f), 1), 3), f]).ravel())
     clus = pyacvd.Clustering(mesh)
     if level:
         clus.subdivide(level)
-    np.random.seed(seed)  # pyacvd seeds its clusters from NumPy's global generator
+    np.random.seed(seed)  # noqa: NPY002 - pyacvd draws its seeds from NumPy's global state
     clus.cluster(n_vertices)
     out = clus.create_mesh()
     rv = np.asarray(out.points, dtype=np.float64)
@@ -431,15 +459,22 @@ def _manifold(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return _fill_small_holes(v, f)
 
 
-def _fill_small_holes(v: np.ndarray, f: np.ndarray, max_rim: int = 12):
-    """Close rims of at most ``max_rim`` vertices (clustering artefacts, not openings).
+def _fill_small_holes(v: np.ndarray, f: np.ndarray, max_rim: int = 6, max_ratio: float = 0.25):
+    """Close the small holes that clustering leaves (not the garment's openings).
 
-    Each is closed by a fan around a new vertex at its centroid, wound like its faces.
+    A hole is a rim of at most ``max_rim`` vertices whose perimeter is under ``max_ratio``
+    of the longest rim's (the openings are far longer). Each is closed by a fan around a new
+    vertex at its centroid, wound like its faces.
     """
+    loops = _loops(f)
+    if not loops:
+        return v, f
+    perimeter = [float(np.linalg.norm(v[lp] - v[np.roll(lp, -1)], axis=1).sum()) for lp in loops]
+    longest = max(perimeter)
     new_v, new_f = [v], [f]
     n = len(v)
-    for loop in _loops(f):
-        if len(loop) > max_rim:
+    for loop, per in zip(loops, perimeter):
+        if len(loop) > max_rim or per >= max_ratio * longest:
             continue
         c = n
         n += 1
@@ -458,11 +493,6 @@ def _orient(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 # -------------------------------------------------------------------------------- fitting
-
-
-def _taubin_step(v: np.ndarray, mean: sp.csr_matrix, lam: float = 0.5, mu: float = -0.53):
-    v = v + lam * (mean @ v - v)
-    return v + mu * (mean @ v - v)
 
 
 def _mean_operators(f: np.ndarray, n: int) -> tuple[sp.csr_matrix, np.ndarray]:
@@ -510,25 +540,27 @@ def _project_out(v: np.ndarray, query, room: np.ndarray) -> np.ndarray:
     away = v[low] - closest[low]
     length = np.linalg.norm(away, axis=1, keepdims=True)
     sign = np.where(d[low] < 0, -1.0, 1.0)[:, None]
-    direction = np.where(length > 1e-9 * room[low, None], sign * away / np.maximum(length, 1e-300),
-                         normal[low])
+    direction = np.where(
+        length > 1e-9 * room[low, None], sign * away / np.maximum(length, 1e-300), normal[low]
+    )
     v = v.copy()
     v[low] = closest[low] + room[low, None] * direction
     return v
 
 
 def _fit(v: np.ndarray, f: np.ndarray, query, clearance: float, iterations: int) -> np.ndarray:
-    """Taubin smoothing alternating with projection to the clearance off the body.
+    """Laplacian smoothing alternating with projection to the clearance off the body.
 
     Where the garment then crosses itself (two sides of a hollow), the vertices around the
     crossing get half the room and the rounds go on, at most eight times.
     """
-    mean, _ = _mean_operators(f, len(v))
+    mean, rim = _mean_operators(f, len(v))
     room = _room(v, query, clearance)
     adj = _adjacency(f, len(v))
     for _ in range(8):
         for _ in range(iterations):
-            v = _taubin_step(v, mean)
+            v = v + 0.5 * (mean @ v - v)  # shrinks: bridges the body's hollows
+            v[rim] -= 0.53 * (mean @ v - v)[rim]  # Taubin on the rims: they keep their size
             v = _project_out(v, query, room)
         pairs = crossing_pairs(v, f)
         if len(pairs) == 0:
@@ -668,13 +700,17 @@ def check_garment(vertices: Any, faces: Any, query=None) -> list[str]:
     key = np.sort(_edges(f), 1)
     _, cnt = np.unique(key, axis=0, return_counts=True)
     if (cnt > 2).any():
-        problems.append(f"{int((cnt > 2).sum())} non-manifold edges (shared by more than two triangles)")
+        problems.append(
+            f"{int((cnt > 2).sum())} non-manifold edges (shared by more than two triangles)"
+        )
     fans = _corner_fans(f, len(v))
     if (fans > 1).any():
-        problems.append(f"{int((fans > 1).sum())} non-manifold vertices (triangle fans touching at a vertex)")
+        n_bad = int((fans > 1).sum())
+        problems.append(f"{n_bad} non-manifold vertices (triangle fans touching at a vertex)")
     _, dcnt = np.unique(_edges(f), axis=0, return_counts=True)
     if (dcnt > 1).any():
-        problems.append(f"inconsistent winding: {int((dcnt > 1).sum())} edges run the same way in both triangles")
+        n_bad = int((dcnt > 1).sum())
+        problems.append(f"inconsistent winding: {n_bad} edges run the same way in both triangles")
     if not bad:
         n_cross = len(crossing_pairs(v, f))
         if n_cross:
@@ -735,7 +771,8 @@ def make_garment(
     shape : tensor, optional
         The body's shape parameters (default: the body's default shape).
     n_vertices : int
-        Vertex count of the template, 200 to 100,000 (the result is within a few percent).
+        Vertex count of the template, 1,000 to 100,000 (the result is within a few percent;
+        below about 1,500 the openings of legs and sleeves get too few vertices to stay clean).
     seed : int
         Seed of the clustering.
     query : callable, optional
@@ -757,7 +794,7 @@ def make_garment(
         count, or a template that fails :func:`check_garment` (a bug worth reporting).
     """
     check_choice(name, "name", GARMENTS)
-    n_vertices = check_int(n_vertices, "n_vertices", low=200, high=100_000)
+    n_vertices = check_int(n_vertices, "n_vertices", low=1000, high=100_000)
     fit_iterations = check_int(fit_iterations, "fit_iterations", low=0)
     if body is None:
         from draping.body import AnnyBody
@@ -782,7 +819,9 @@ def make_garment(
     v = _fit(v, f, query, clearance, fit_iterations)
     problems = check_garment(v, f, query)
     if problems:
-        raise ValueError(f"garment {name!r}: the generated template is not clean: {'; '.join(problems)}")
+        raise ValueError(
+            f"garment {name!r}: the generated template is not clean: {'; '.join(problems)}"
+        )
     info = {"spec": spec.__dict__.copy(), "clearance": clearance, "hip_to_neck": h, "seed": seed}
     return Garment(name, v, f, info)
 
@@ -832,14 +871,21 @@ def load_garment(path: str | Path, query=None, name: str | None = None) -> Garme
     return Garment(name or p.stem, v, f, {"file": str(p)})
 
 
-def fit_garment_to_shape(garment: Garment, body: Any, shape: Any, *, from_shape: Any = None,
-                         neighbours: int = 8, query=None) -> Garment:
+def fit_garment_to_shape(
+    garment: Garment,
+    body: Any,
+    shape: Any,
+    *,
+    from_shape: Any = None,
+    neighbours: int = 8,
+    query=None,
+) -> Garment:
     """Carry a template made for one body shape over to another.
 
     Each garment vertex moves with the body around it: by the Gaussian-weighted mean
     displacement of its ``neighbours`` nearest body vertices between the two rest shapes
-    (width: the distance to the nearest one), then any vertex left inside the new body is
-    projected out by the template's clearance.
+    (width: the distance to the nearest one); then a few rounds of the template's fit
+    (smoothing, projection to its clearance off the new body, untangling) settle it.
 
     Parameters
     ----------
@@ -872,22 +918,131 @@ def fit_garment_to_shape(garment: Garment, body: Any, shape: Any, *, from_shape:
     if query is None:
         query = _default_query(dst, faces_body)
     clearance = float(garment.info.get("clearance", 0.0))
-    v = _project_out(v, query, np.full(len(v), clearance))
+    if clearance > 0:  # a few rounds of the template's own fit settle it on the new body
+        v = _fit(v, garment.faces, query, clearance, iterations=5)
+    else:
+        v = _project_out(v, query, np.full(len(v), 1e-3 * _extent(dst)))
     info = dict(garment.info)
     info["shape"] = None if shape is None else np.asarray(torch.as_tensor(shape)).tolist()
     return Garment(garment.name, v, garment.faces.copy(), info)
 
 
 def _default_query(vertices: np.ndarray, faces: np.ndarray):
-    """Signed distance, closest point and normal against a closed body mesh."""
-    import trimesh
+    """``query(points) -> (signed_distance, closest, normal)`` against a closed body mesh."""
+    from draping.collision import MeshQuery
 
-    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    mesh = MeshQuery(vertices, faces)
 
     def query(points):
-        closest, dist, tri = trimesh.proximity.closest_point(mesh, points)
-        normal = mesh.face_normals[tri]
-        sign = np.where(np.einsum("ij,ij->i", points - closest, normal) < 0, -1.0, 1.0)
-        return sign * dist, closest, normal
+        res = mesh.query(np.asarray(points, dtype=np.float64))
+        return res.distance, res.closest, res.normal
 
     return query
+
+
+# ----------------------------------------------------------------------- shipped templates
+
+
+def template_path(name: str) -> Path:
+    """Path of the shipped template of a named garment (``draping/data/garment_NAME.npz``)."""
+    check_choice(name, "name", GARMENTS)
+    return _DATA / f"garment_{name}.npz"
+
+
+def save_garment(path: str | Path, g: Garment) -> Path:
+    """Write a garment as NPZ (vertices float64, faces int64, info as JSON text), atomically.
+
+    Returns the path written.
+    """
+    import io
+    import json
+
+    from polygeo.runs import atomic_write_bytes
+
+    buf = io.BytesIO()
+    np.savez_compressed(
+        buf,
+        vertices=np.asarray(g.vertices, np.float64),
+        faces=np.asarray(g.faces, np.int64),
+        name=np.array(g.name),
+        info=np.array(json.dumps(g.info, sort_keys=True)),
+    )
+    return atomic_write_bytes(Path(path), buf.getvalue())
+
+
+def read_garment_npz(path: str | Path) -> Garment:
+    """Read a garment written by :func:`save_garment` (no pickled objects are loaded).
+
+    Raises
+    ------
+    FileNotFoundError
+        No such file.
+    ValueError
+        A file without ``vertices``/``faces`` arrays.
+    """
+    import json
+
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"garment file not found: {p}")
+    with np.load(p, allow_pickle=False) as z:
+        missing = {"vertices", "faces"} - set(z.files)
+        if missing:
+            raise ValueError(f"{p}: not a garment file, missing {sorted(missing)}")
+        name = str(z["name"]) if "name" in z.files else p.stem
+        info = json.loads(str(z["info"])) if "info" in z.files else {}
+        return Garment(name, z["vertices"].astype(np.float64), z["faces"].astype(np.int64), info)
+
+
+def garment(
+    name: str, body: Any = None, shape: Any = None, *, n_vertices: int | None = None, seed: int = 0
+) -> Garment:
+    """The template of a named garment for a body shape.
+
+    The shipped template (made for the default shape of the shipped Anny body, at
+    :data:`DEFAULT_VERTICES` vertices) is read when it applies; another body or vertex count
+    generates one (:func:`make_garment`, about 10-20 s). A ``shape`` other than the default
+    carries the template over to that shape (:func:`fit_garment_to_shape`).
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`GARMENTS`.
+    body : BodyModel, optional
+        The body (default: the shipped Anny body).
+    shape : tensor, optional
+        Body shape parameters (default: the body's default shape).
+    n_vertices : int, optional
+        Vertex count (default :data:`DEFAULT_VERTICES`).
+    seed : int
+        Seed of the clustering when a template is generated.
+
+    Returns
+    -------
+    Garment
+        Rest-pose garment for ``shape``.
+
+    Raises
+    ------
+    ValueError
+        An unknown name or out-of-range vertex count.
+    """
+    check_choice(name, "name", GARMENTS)
+    n = (
+        DEFAULT_VERTICES
+        if n_vertices is None
+        else check_int(n_vertices, "n_vertices", low=1000, high=100_000)
+    )
+    shipped = body is None and n == DEFAULT_VERTICES and template_path(name).is_file()
+    if body is None:
+        from draping.body import AnnyBody
+
+        body = AnnyBody.load(dtype=torch.float64)
+    g = (
+        read_garment_npz(template_path(name))
+        if shipped
+        else make_garment(name, body, None, n_vertices=n, seed=seed)
+    )
+    if shape is not None:
+        g = fit_garment_to_shape(g, body, shape)
+    return g
