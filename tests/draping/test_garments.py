@@ -141,7 +141,7 @@ def test_check_garment_names_each_problem():
     bow_f = np.vstack([f, np.where(f == 0, len(v) - 1, f + len(v) - 1)])
     assert any("non-manifold vertices" in p for p in check_garment(bow_v, bow_f))
     # A sheet crossing another.
-    cross_v = np.vstack([v, v[:, [0, 2, 1]] + np.array([0.0, -2.5, 2.5])])
+    cross_v = np.vstack([v, v[:, [0, 2, 1]] + np.array([0.3, 2.3, -2.5])])
     cross_f = np.vstack([f, f + len(v)])
     assert len(crossing_pairs(cross_v, cross_f)) > 0
     assert any("intersect" in p for p in check_garment(cross_v, cross_f))
