@@ -1,15 +1,19 @@
 """Reading and writing point clouds and meshes.
 
-Readers return float64 NumPy arrays in the file's own vertex order: meshes are loaded with
-``trimesh`` *without* its processing (``process=False``), so no vertex is merged, dropped
-or reordered and per-vertex attributes stay aligned with the points. Writers never leave a
-half-written file: they write to a temporary file beside the target and ``os.replace`` it.
+Readers return float64 NumPy arrays in the file's own vertex order: no vertex is merged,
+dropped or reordered (except STL, a triangle soup whose shared corners are merged), so
+per-vertex attributes stay aligned with the points. Writers never leave a half-written
+file: they write to a temporary file beside the target and ``os.replace`` it.
 
-Supported inputs: ``.ply`` (ASCII or binary; every extra vertex property becomes an
-attribute), ``.obj``, ``.off``, ``.xyz`` / ``.txt`` (whitespace-separated ``x y z`` or
-``x y z nx ny nz`` rows, ``#`` comments), ``.npy`` (an ``(N, 3)`` or ``(N, 6)`` array) and
+PLY is read and written with ``plyfile`` (a small, public, well-kept library that handles
+every PLY variant: ASCII and binary of either endianness, any scalar and list property type,
+extra elements, ``comment``/``obj_info`` lines); OBJ, OFF and text clouds are parsed in
+:mod:`polygeo._io_formats`; STL is read with ``trimesh``'s public loader. Supported inputs:
+``.ply .obj .off .stl``, text clouds ``.xyz .txt .csv .asc .pts`` (comma, semicolon, tab or
+space separated, optional header of column names), ``.npy`` (an ``(N, C >= 3)`` array) and
 ``.npz`` (key ``points`` or ``vertices``, optional ``normals``, ``faces``; other ``(N, ...)``
-arrays become attributes).
+arrays become attributes). A file that cannot be read raises one ``ValueError`` line naming
+the file and the problem.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from . import _io_formats as _fmt
 from .runs import atomic_write
 
 __all__ = [
@@ -36,7 +41,7 @@ __all__ = [
 ]
 
 #: File suffixes :func:`read_points` understands.
-SUFFIXES = (".ply", ".obj", ".off", ".xyz", ".txt", ".npy", ".npz")
+SUFFIXES = (".ply", ".obj", ".off", ".stl", ".xyz", ".txt", ".csv", ".asc", ".pts", ".npy", ".npz")
 
 
 @dataclass(frozen=True)
@@ -79,166 +84,108 @@ def _check_file(path: Any) -> Path:
     return p
 
 
-def _split_xyz_normals(arr: np.ndarray, p: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    if arr.ndim != 2 or arr.shape[1] not in (3, 6):
-        raise ValueError(f"{p}: expected an (N, 3) or (N, 6) array, got shape {arr.shape}")
-    if arr.shape[0] == 0:
-        raise ValueError(f"{p}: the file holds no points")
+def _read_npy(p: Path, columns: list[str] | None) -> dict[str, Any]:
+    arr = np.load(p, allow_pickle=False)
     if arr.dtype.kind not in "iuf":
-        raise ValueError(f"{p}: expected numeric values, got dtype {arr.dtype}")
-    arr = arr.astype(np.float64)
-    return np.ascontiguousarray(arr[:, :3]), (
-        np.ascontiguousarray(arr[:, 3:6]) if arr.shape[1] == 6 else None
-    )
+        raise ValueError(f"expected numeric values, got dtype {arr.dtype}")
+    if arr.ndim != 2 or arr.shape[1] < 3:
+        raise ValueError(f"expected an (N, 3) or (N, C >= 3) array, got shape {arr.shape}")
+    return _fmt.split_columns(arr.astype(np.float64), columns, explicit=columns)
 
 
-def _read_ply(p: Path) -> PointData:
-    import trimesh
-
-    try:
-        obj = trimesh.load(str(p), file_type="ply", process=False)
-    except Exception as exc:  # trimesh raises many types for corrupt files
-        raise ValueError(f"{p}: could not parse as PLY ({type(exc).__name__}: {exc})") from exc
-    raw = getattr(obj, "metadata", {}).get("_ply_raw", {}).get("vertex", {})
-    data = raw.get("data")
-    if data is None or len(data) == 0:
-        raise ValueError(f"{p}: the PLY file has no vertices")
-    names = list(data.dtype.names or ())
-    for c in "xyz":
-        if c not in names:
-            raise ValueError(f"{p}: the PLY vertex element has no property {c!r}")
-    pts = np.stack([np.asarray(data[c], dtype=np.float64) for c in "xyz"], axis=1)
-    normals = None
-    used = {"x", "y", "z"}
-    if all(c in names for c in ("nx", "ny", "nz")):
-        normals = np.stack([np.asarray(data[c], dtype=np.float64) for c in ("nx", "ny", "nz")], 1)
-        used |= {"nx", "ny", "nz"}
-    attrs = {n: np.asarray(data[n]).copy() for n in names if n not in used}
-    attrs = _group_vector_attributes(attrs)
-    faces = None
-    if isinstance(obj, trimesh.Trimesh) and len(obj.faces):
-        faces = np.asarray(obj.faces, dtype=np.int64)
-    return PointData(pts, normals, faces, attrs)
-
-
-def _group_vector_attributes(attrs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Re-assemble ``name_x, name_y, name_z`` properties (as :func:`write_ply` writes them)."""
-    out: dict[str, np.ndarray] = {}
-    done: set[str] = set()
-    for n in attrs:
-        if n in done:
-            continue
-        if n.endswith("_x"):
-            base = n[:-2]
-            parts = [f"{base}_{c}" for c in "xyz"]
-            if all(q in attrs for q in parts):
-                out[base] = np.stack([attrs[q] for q in parts], axis=1)
-                done.update(parts)
-                continue
-        out[n] = attrs[n]
-        done.add(n)
-    return out
-
-
-def _read_trimesh(p: Path, kind: str) -> PointData:
-    import trimesh
-
-    try:
-        obj = trimesh.load(str(p), file_type=kind, process=False, maintain_order=True)
-    except Exception as exc:
-        msg = f"{p}: could not parse as {kind.upper()} ({type(exc).__name__}: {exc})"
-        raise ValueError(msg) from exc
-    if isinstance(obj, trimesh.Scene):
-        geoms = list(obj.geometry.values())
-        if not geoms:
-            raise ValueError(f"{p}: the file has no geometry")
-        if len(geoms) > 1:
-            obj = trimesh.util.concatenate(geoms)
-        else:
-            obj = geoms[0]
-    verts = np.asarray(getattr(obj, "vertices", np.zeros((0, 3))), dtype=np.float64)
-    if verts.shape[0] == 0:
-        raise ValueError(f"{p}: the file has no vertices")
-    faces = None
-    if isinstance(obj, trimesh.Trimesh) and len(obj.faces):
-        faces = np.asarray(obj.faces, dtype=np.int64)
-    return PointData(np.ascontiguousarray(verts), None, faces, {})
-
-
-def _read_npz(p: Path) -> PointData:
-    try:
-        with np.load(p, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except Exception as exc:
-        raise ValueError(f"{p}: could not read as NPZ ({type(exc).__name__}: {exc})") from exc
+def _read_npz(p: Path) -> dict[str, Any]:
+    with np.load(p, allow_pickle=False) as z:
+        data = {k: z[k] for k in z.files}
     key = "points" if "points" in data else "vertices" if "vertices" in data else None
     if key is None:
-        raise ValueError(f"{p}: expected a 'points' or 'vertices' array, found {sorted(data)}")
-    pts, _ = _split_xyz_normals(data.pop(key), p)
+        raise ValueError(f"expected a 'points' or 'vertices' array, found {sorted(data)}")
+    pts = np.asarray(data.pop(key))
+    if pts.ndim != 2 or pts.shape[1] != 3 or pts.dtype.kind not in "iuf":
+        raise ValueError(f"{key!r}: expected a numeric (N, 3) array, got {pts.shape} {pts.dtype}")
+    pts = pts.astype(np.float64)
     normals = None
     if "normals" in data:
         normals = np.asarray(data.pop("normals"), dtype=np.float64)
         if normals.shape != pts.shape:
-            raise ValueError(f"{p}: 'normals' has shape {normals.shape}, expected {pts.shape}")
+            raise ValueError(f"'normals' has shape {normals.shape}, expected {pts.shape}")
     faces = None
     if "faces" in data:
         faces = np.asarray(data.pop("faces"))
         if faces.ndim != 2 or faces.shape[1] != 3 or faces.dtype.kind not in "iu":
-            raise ValueError(f"{p}: 'faces' must be an (F, 3) integer array, got {faces.shape}")
+            raise ValueError(f"'faces' must be an (F, 3) integer array, got {faces.shape}")
         faces = faces.astype(np.int64)
     n = pts.shape[0]
     attrs = {k: v for k, v in data.items() if v.ndim >= 1 and v.shape[0] == n}
-    return PointData(pts, normals, faces, attrs)
+    return {"points": pts, "normals": normals, "faces": faces, "attributes": attrs}
 
 
-def read_points(path: str | os.PathLike) -> PointData:
+def _parse_columns(columns: Any) -> list[str] | None:
+    if columns is None:
+        return None
+    names = columns.replace(",", " ").split() if isinstance(columns, str) else list(columns)
+    if len(names) < 3 or not all(isinstance(n, str) and n for n in names):
+        raise ValueError(f"columns: expected at least 3 column names (x y z ...), got {columns!r}")
+    return [n.lower() for n in names]
+
+
+def read_points(path: str | os.PathLike, *, columns: str | list[str] | None = None) -> PointData:
     """Read a point cloud or mesh file.
+
+    Formats: PLY (ASCII or binary of either endianness, any property types, extra elements;
+    through ``plyfile``; ``nx ny nz`` are normals, ``red green blue`` the attribute
+    ``colors``, other vertex properties attributes), OBJ (polygons, ``v/vt/vn`` corners;
+    normals when each vertex has one), OFF (``OFF``/``COFF``/``NOFF``), STL (ASCII or binary;
+    shared corners merged), text clouds (``.xyz .txt .csv .asc .pts``), NPY and NPZ.
+
+    Columns of a text cloud or an ``(N, C)`` NPY array are read by an explicit rule: the
+    ``columns`` argument; else a header line of names (``x y z nx ny nz ...``); else ``x y z``
+    first, and columns 4-6 are normals only when there are exactly six and all are unit
+    vectors (``x y z r g b`` keeps its colours as attributes ``col3 col4 col5``).
 
     Parameters
     ----------
     path : str or os.PathLike
-        A ``.ply``, ``.obj``, ``.off``, ``.xyz``/``.txt``, ``.npy`` or ``.npz`` file.
+        The file; its extension selects the format (one of :data:`SUFFIXES`).
+    columns : str or list of str, optional
+        Names of the columns of a text or NPY file, e.g. ``"x y z nx ny nz"`` or
+        ``"x,y,z,r,g,b"``; must include ``x``, ``y`` and ``z``.
 
     Returns
     -------
     PointData
         Points ``(N, 3)`` float64, optional normals, faces and per-vertex attributes, in the
-        file's vertex order.
+        file's vertex order (STL: order of first appearance).
 
     Raises
     ------
     FileNotFoundError
         The file does not exist.
     ValueError
-        Unknown extension, empty file, unparsable content or wrong array shapes (the message
-        names the file).
+        Unknown extension, empty file, unparsable content or wrong array shapes: one line
+        that names the file and the problem.
     """
     p = _check_file(path)
+    cols = _parse_columns(columns)
     suffix = p.suffix.lower()
-    if suffix == ".ply":
-        out = _read_ply(p)
-    elif suffix in (".obj", ".off"):
-        out = _read_trimesh(p, suffix[1:])
-    elif suffix in (".xyz", ".txt"):
-        try:
-            arr = np.loadtxt(p, comments="#", ndmin=2, dtype=np.float64)
-        except ValueError as exc:
-            msg = f"{p}: could not parse as whitespace-separated numbers ({exc})"
-            raise ValueError(msg) from exc
-        pts, nrm = _split_xyz_normals(arr, p)
-        out = PointData(pts, nrm, None, {})
-    elif suffix == ".npy":
-        try:
-            arr = np.load(p, allow_pickle=False)
-        except Exception as exc:
-            raise ValueError(f"{p}: could not read as NPY ({type(exc).__name__}: {exc})") from exc
-        pts, nrm = _split_xyz_normals(np.asarray(arr), p)
-        out = PointData(pts, nrm, None, {})
-    else:
-        out = _read_npz(p)
+    readers = {".ply": _fmt.read_ply, ".obj": _fmt.read_obj, ".off": _fmt.read_off,
+               ".stl": _fmt.read_stl, ".npz": _read_npz}
+    try:
+        if suffix in readers:
+            rec = readers[suffix](p)
+        elif suffix == ".npy":
+            rec = _read_npy(p, cols)
+        else:
+            rec = _fmt.read_text(p, cols)
+    except Exception as exc:  # every parser failure becomes one line naming the file
+        kind = suffix[1:].upper()
+        detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ValueError(f"{p}: cannot read as {kind}: {detail}") from exc
+    out = PointData(rec["points"], rec["normals"], rec["faces"], rec["attributes"])
     if out.faces is not None and out.faces.size:
         if out.faces.min() < 0 or out.faces.max() >= out.points.shape[0]:
             raise ValueError(f"{p}: faces refer to vertices outside [0, {out.points.shape[0] - 1}]")
+    if out.faces is not None and out.faces.shape[0] == 0:
+        out = PointData(out.points, out.normals, None, out.attributes)
     return out
 
 
@@ -277,7 +224,6 @@ def _np(x: Any, name: str) -> np.ndarray:
     return a
 
 
-_PLY_TYPES = {"f4": "float", "f8": "double", "i4": "int", "u1": "uchar", "i8": "int"}
 
 
 def write_ply(
@@ -352,28 +298,22 @@ def write_ply(
     rec = np.zeros(n, dtype=[(nm, dt) for nm, dt, _ in fields])
     for nm, _, col in fields:
         rec[nm] = col
-    face_block = b""
-    n_faces = 0
+    from plyfile import PlyData, PlyElement
+
+    elements = [PlyElement.describe(rec, "vertex")]
     if faces is not None:
         f = _np(faces, "faces")
         if f.ndim != 2 or f.shape[1] != 3 or f.dtype.kind not in "iu":
             raise ValueError(f"faces: expected an (F, 3) integer array, got {f.shape} {f.dtype}")
         if f.size and (f.min() < 0 or f.max() >= n):
             raise ValueError(f"faces: expected indices in [0, {n - 1}], got [{f.min()}, {f.max()}]")
-        n_faces = f.shape[0]
-        frec = np.zeros(n_faces, dtype=[("n", "u1"), ("v", "<i4", (3,))])
-        frec["n"] = 3
-        frec["v"] = f
-        face_block = frec.tobytes()
-    header = ["ply", "format binary_little_endian 1.0", "comment written by polygeo"]
-    header.append(f"element vertex {n}")
-    header += [f"property {_PLY_TYPES[np.dtype(dt).str[1:]]} {nm}" for nm, dt, _ in fields]
-    if faces is not None:
-        header += [f"element face {n_faces}", "property list uchar int vertex_indices"]
-    header.append("end_header")
-    blob = ("\n".join(header) + "\n").encode("ascii") + rec.tobytes() + face_block
+        frec = np.zeros(f.shape[0], dtype=[("vertex_indices", "<i4", (3,))])
+        frec["vertex_indices"] = f
+        elements.append(PlyElement.describe(frec, "face", len_types={"vertex_indices": "u1"},
+                                            val_types={"vertex_indices": "i4"}))
+    ply = PlyData(elements, text=False, byte_order="<", comments=["written by polygeo"])
     out = Path(os.fspath(path))
-    atomic_write(out, lambda fh: fh.write(blob))
+    atomic_write(out, ply.write)
     return out
 
 

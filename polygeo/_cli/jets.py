@@ -14,10 +14,13 @@ Estimate per-point differential quantities (normals, principal curvatures and di
 mean and Gaussian curvature) by fitting n-jets (Cazals & Pouget 2005) to the neighbourhood of
 every point, and write them to an NPZ file (and optionally a PLY file).
 
-Input formats: .ply (ASCII or binary; nx/ny/nz are used to orient the normals), .obj, .off
-(meshes: the face winding orients the normals), .xyz/.txt ('x y z' or 'x y z nx ny nz'
-rows), .npy ((N, 3) or (N, 6) array), .npz (key 'points' or 'vertices', optional 'normals',
-'faces').
+Input formats: .ply (ASCII or binary; nx/ny/nz are used to orient the normals), .obj, .off,
+.stl (meshes: the face winding orients the normals), text clouds .xyz/.txt/.csv/.asc/.pts
+(comma or space separated, optional header line of names), .npy ((N, C) array), .npz (key
+'points' or 'vertices', optional 'normals', 'faces'). Columns of a text or NPY cloud: given
+by --columns, else by a header line of names (x y z nx ny nz ...), else x y z first and
+columns 4-6 are normals only if there are exactly six and all are unit vectors (so
+'x y z r g b' keeps its colours apart).
 
 Output NPZ keys (exactly): points (N,3), normals (N,3), k1 (N,), k2 (N,) with k1 >= k2,
 d1 (N,3), d2 (N,3), mean_curvature (N,), gaussian_curvature (N,), status (N,).
@@ -44,6 +47,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("input", help="point cloud or mesh file (.ply .obj .off .xyz .txt .npy .npz)")
+    p.add_argument(
+        "--columns",
+        default=None,
+        help="names of the columns of a text or .npy cloud, e.g. 'x y z nx ny nz' or "
+        "'x,y,z,r,g,b' (must include x, y, z; nx ny nz are normals; others are ignored)",
+    )
     p.add_argument("-o", "--output", required=True, help="output .npz file (written atomically)")
     p.add_argument(
         "--k",
@@ -106,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
     k = int_or_auto(args.k, "k")
     order = int_or_auto(args.order, "order")
     t0 = time.perf_counter()
-    data = read_points(args.input)
+    data = read_points(args.input, columns=args.columns)
     t_read = time.perf_counter() - t0
     t1 = time.perf_counter()
     dq = differential_quantities(

@@ -102,7 +102,7 @@ def test_errors_name_the_file(tmp_path):
     with pytest.raises(ValueError, match="unknown extension"):
         io.read_points(tmp_path / "u.stl2")
     np.save(tmp_path / "w.npy", np.zeros((4, 2)))
-    with pytest.raises(ValueError, match=r"w.npy: expected an \(N, 3\)"):
+    with pytest.raises(ValueError, match=r"w.npy: cannot read as NPY: expected an \(N, 3\)"):
         io.read_points(tmp_path / "w.npy")
     (tmp_path / "g.xyz").write_text("1 2 three\n")
     with pytest.raises(ValueError, match="g.xyz"):
