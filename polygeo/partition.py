@@ -41,6 +41,7 @@ from .mesh import edges as mesh_edges
 __all__ = [
     "Partition",
     "default_n_patches",
+    "patch_count_for_vertices",
     "partition",
     "partition_mesh",
     "partition_points",
@@ -123,6 +124,43 @@ def default_n_patches(area: float) -> int:
     """
     a = check_positive(area, "area", strict=False)
     return int(max(100, min(400, np.floor(a / AREA_PER_PATCH))))
+
+
+#: Vertices per jet coefficient of a patch under :func:`patch_count_for_vertices`.
+VERTICES_PER_COEFF = 6.0
+
+
+def patch_count_for_vertices(n_vertices: int, n_coeffs: int, *, high: int = 400) -> int:
+    """A scale-free patch count: enough vertices in every patch for its jet.
+
+    ``K = clip(floor(V / (6 M)), 1, high)`` for ``V`` vertices and jets of ``M``
+    coefficients (15 for order 4): each patch holds about six vertices per coefficient, so
+    the jet is fitted (not interpolated) whatever the units of the input, unlike
+    :func:`default_n_patches`, whose area rule assumes metres.
+
+    Parameters
+    ----------
+    n_vertices : int
+        Number of vertices (or points) V >= 1.
+    n_coeffs : int
+        Coefficients per patch jet, M >= 1.
+    high : int
+        Largest count returned.
+
+    Returns
+    -------
+    int
+        K in ``[1, high]``.
+
+    Raises
+    ------
+    ValueError
+        If an argument is not a positive integer.
+    """
+    v = check_int(n_vertices, "n_vertices", low=1)
+    m = check_int(n_coeffs, "n_coeffs", low=1)
+    hi = check_int(high, "high", low=1)
+    return int(max(1, min(hi, np.floor(v / (VERTICES_PER_COEFF * m)))))
 
 
 # ----------------------------------------------------------------------------- helpers

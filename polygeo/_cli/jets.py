@@ -117,6 +117,10 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     data = read_points(args.input, columns=args.columns)
     t_read = time.perf_counter() - t0
+    n_finite = int(np.isfinite(data.points).all(axis=1).sum())
+    if isinstance(k, int) and args.radius is None and args.rings is None and k >= n_finite:
+        raise ValueError(f"--k: {k} neighbours requested but {args.input} has {n_finite} "
+                         f"finite points (at most {n_finite - 1} neighbours each)")
     t1 = time.perf_counter()
     dq = differential_quantities(
         data.points,

@@ -18,8 +18,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("mesh", help="input mesh or point cloud (.ply .obj .off .npz .xyz .npy)")
     p.add_argument("-o", "--output", required=True, help="output patch set (.npz)")
-    p.add_argument("--patches", type=int, default=None,
-                   help="number of patches K (default: max(100, min(400, area / 0.008)))")
+    p.add_argument("--patches", type=int, default=None, metavar="K",
+                   help="number of patches (a count, not an area; default scale-free: about "
+                   "6 vertices per jet coefficient, at most 400)")
     p.add_argument("--order", default="4", help="jet order 1..6 or 'auto' (default 4)")
     p.add_argument("--tol", type=float, default=None,
                    help="height tolerance for --order auto (input units; default: BIC)")
@@ -29,7 +30,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="patch canonicalisation (default pca)")
     p.add_argument("--resample", type=int, default=None, metavar="R",
                    help="subdivision level of the resampled surface (used for the Chamfer "
-                   "distance and --mesh-out; default 0)")
+                   "distance, the deviation check and --mesh-out; default 2: level 0 samples "
+                   "only the input vertices and misses a surface that leaves the input "
+                   "between them)")
     p.add_argument("--mesh-out", default=None, help="write the resampled surface as PLY")
     p.add_argument("--chamfer-samples", type=int, default=10000,
                    help="input samples for the Chamfer distances (0 disables; default 10000, "
@@ -68,9 +71,12 @@ def _run(args: argparse.Namespace) -> int:
     out = ps.save(args.output)
     m = ps.metrics()
     s = m.summary()
-    level = 0 if args.resample is None else args.resample
+    level = (2 if data.faces is not None else 0) if args.resample is None else args.resample
     rv, rf = ps.resample(level)
     rv = rv.detach().numpy()
+    deviation = None
+    if data.faces is not None:
+        deviation = _deviation(rv, data.points, data.faces)
     chamfer = None
     if args.chamfer_samples and data.faces is not None:
         chamfer = chamfer_report(data.points, data.faces, rv, rf,
@@ -109,20 +115,47 @@ def _run(args: argparse.Namespace) -> int:
             f"  dense points   {c['dense']:.4f}  ({chamfer.n_dense} reconstruction samples; "
             f"sampling floor {c['dense_floor']:.4f})",
         ]
+    warn = None
+    if deviation is not None:
+        lines.append(
+            f"deviation        resampled level {level} vs input, / bounding-box diagonal: "
+            f"p99 {deviation['p99']:.2e}  max {deviation['max']:.2e}  "
+            f"beyond 1 %: {100 * deviation['share_1pc']:.2f} % of points"
+        )
+        if deviation["max"] > 0.01:
+            warn = (f"polygeo polyfit: warning: the fitted surface leaves the input by up to "
+                    f"{100 * deviation['max']:.1f} % of its size between vertices "
+                    f"({100 * deviation['share_1pc']:.2f} % of the level-{level} points beyond "
+                    "1 %): spikes or fins; try fewer patches (--patches) or a lower --order")
     if "search" in ps.info:
         for rec in ps.info["search"]:
             lines.append(f"  K search       requested {rec['requested']}: {rec['patches']} "
                          f"patches, height RMSE {rec['height_rmse']:.3e}")
     lines.append(f"wrote            {out}" + (f", {args.mesh_out}" if args.mesh_out else ""))
     print("\n".join(lines))
+    if warn:
+        print(warn, file=sys.stderr)
     if args.json:
         ch = {} if chamfer is None else chamfer._asdict()
         rec = dict(s, chamfer=ch.get("points"), chamfer_floor=ch.get("points_floor"),
                    chamfer_dense=ch.get("dense"), chamfer_dense_floor=ch.get("dense_floor"),
                    chamfer_surface=ch.get("surface"), chamfer_samples=ch.get("n_samples"),
                    chamfer_dense_samples=ch.get("n_dense"), fit_seconds=t_fit,
-                   n_coefficients=ps.n_coefficients, orient=ps.orient, resample_level=level)
+                   n_coefficients=ps.n_coefficients, orient=ps.orient, resample_level=level,
+                   deviation=deviation)
         with open(args.json, "w") as fh:
             json.dump(rec, fh, indent=1)
     sys.stdout.flush()
     return 0
+
+
+def _deviation(rv, v, f) -> dict:
+    """Distances of the resampled points to the input surface, over its bounding-box diagonal."""
+    import numpy as np
+
+    from polygeo.proximity import squared_distance_to_mesh
+
+    diag = float(np.linalg.norm(v.max(0) - v.min(0))) or 1.0
+    d = np.sqrt(squared_distance_to_mesh(np.asarray(rv), v, f)) / diag
+    return {"p99": float(np.percentile(d, 99)), "max": float(d.max()),
+            "share_1pc": float((d > 0.01).mean())}

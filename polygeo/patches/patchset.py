@@ -27,7 +27,7 @@ from ..checks import (
     is_numpy_like,
 )
 from ..frames import Orientation
-from ..partition import Partition
+from ..partition import Partition, patch_count_for_vertices
 from .evaluation import (
     PatchGeometry,
     evaluate_patches,
@@ -194,8 +194,10 @@ class PatchSet:
             A precomputed partition of these vertices (default: :func:`polygeo.partition.
             partition` with ``n_patches`` and ``seed``).
         n_patches : int, optional
-            Requested K (default: the thesis rule ``max(100, min(400, area / 0.008))``).
-            Ignored when ``partition`` is given.
+            Requested number of patches K (a count; default: scale-free,
+            :func:`polygeo.partition.patch_count_for_vertices`: about six vertices per
+            coefficient of an order-``min(order, 4)`` jet, at most 400). Ignored when
+            ``partition`` is given.
         order : int or "auto"
             Jet order in ``[1, 6]``, or ``"auto"``: per patch the lowest order in
             ``[1, max_order]`` whose height RMSE is at most ``tol`` (input units), or, with
@@ -257,6 +259,8 @@ class PatchSet:
         min_pts = jets.n_coeffs(min(settings.top_order, 4))
         if target_rmse is None:
             part = partition
+            if part is None and n_patches is None:
+                n_patches = patch_count_for_vertices(n_vertices, min_pts)
             if part is None:
                 part = partition_for_fit(v, f, n_patches, seed, min_pts)
             return cls(**fit_partition(part, v, f, nrm, settings))
