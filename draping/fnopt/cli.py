@@ -1,0 +1,156 @@
+"""``polygeo train-fnopt`` and ``polygeo simulate`` (grid cloth, FNOpt or classical)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import asdict, fields
+from pathlib import Path
+
+__all__ = ["register", "register_simulate", "run_train", "run_simulate"]
+
+
+def _threads(n: int) -> None:
+    import torch
+
+    torch.set_num_threads(max(int(n), 1))
+
+
+def _res(s: str) -> tuple[int, int]:
+    try:
+        parts = [int(p) for p in s.lower().split("x")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected N or HxW, got {s!r}") from None
+    if len(parts) == 1:
+        parts = parts * 2
+    if len(parts) != 2 or min(parts) < 3:
+        raise argparse.ArgumentTypeError(f"expected N or HxW with N, H, W >= 3, got {s!r}")
+    return parts[0], parts[1]
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``train-fnopt`` to the ``polygeo`` sub-parsers."""
+    from .train import TrainSettings
+
+    p = sub.add_parser(
+        "train-fnopt",
+        help="meta-train the FNOpt cloth optimiser (data-pool scheme, 32x32 grids)",
+        description="Meta-train the FNO optimiser of FNOpt on 32x32 grid cloth with the "
+        "data-pool scheme. Writes OUT/checkpoint.pt (an interrupted run resumes with the same "
+        "settings), OUT/log.jsonl, OUT/training.png, OUT/fnopt_model.pt and its JSON record "
+        "(config, command, minutes, figures). Copy both into draping/data/ to ship them.",
+    )
+    p.add_argument("-o", "--out", required=True, help="run folder")
+    g = p.add_argument_group("settings (defaults: draping.fnopt.train.TrainSettings)")
+    for f in fields(TrainSettings):
+        g.add_argument("--" + f.name.replace("_", "-"), dest=f.name,
+                       type=type(f.default), default=f.default,
+                       help=f"default {f.default!r}")
+    p.add_argument("--max-minutes", type=float, default=None,
+                   help="stop (checkpointed) after this many minutes; run again to resume")
+    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run_train)
+
+
+def run_train(args: argparse.Namespace) -> int:
+    """Body of ``polygeo train-fnopt``."""
+    from polygeo import runs
+
+    from .. import viz
+    from .train import TrainSettings, train
+
+    _threads(args.threads)
+    s = TrainSettings(**{f.name: getattr(args, f.name) for f in fields(TrainSettings)})
+    out = Path(args.out)
+    res = train(s, out, quiet=args.quiet, max_minutes=args.max_minutes)
+    hist = res["history"]
+    if hist:
+        viz.plot_curves({"validation sub-optimality (N=10)": [h["val_subopt"] for h in hist],
+                         "training loss (EMA) + 1": [1.0 + h["loss_ema"] for h in hist]},
+                        out / "training.png", x={k: [h["step"] for h in hist] for k in (
+                            "validation sub-optimality (N=10)", "training loss (EMA) + 1")},
+                        xlabel="step", logy=True, title="FNOpt meta-training")
+    import torch
+
+    torch.save(res["model"].state_dict(), out / "fnopt_model.pt")
+    record = {"config": {k: s_ for k, s_ in asdict(res["model"].config).items()},
+              "settings": res["settings"], "parameters": res["parameters"],
+              "command": "polygeo train-fnopt " + " ".join(sys.argv[2:]),
+              "minutes": res["minutes"], "steps": res["step"], "finished": res["finished"],
+              "val_subopt": res["val_subopt"], "history": hist,
+              "torch": torch.__version__, "threads": args.threads,
+              "date": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime())}
+    runs.atomic_write_json(out / "fnopt_model.json", record)
+    print(f"trained {res['step']} steps in {res['minutes']:.1f} min; validation "
+          f"sub-optimality {res['val_subopt']}; weights {out / 'fnopt_model.pt'}")
+    return 0
+
+
+def register_simulate(sub: argparse._SubParsersAction) -> None:
+    """Add ``simulate``."""
+    from .cloth import LAYOUTS
+    from .handles import MOTIONS
+    from .simulate import OPTIMIZERS
+
+    p = sub.add_parser(
+        "simulate",
+        help="grid cloth rollout with FNOpt or a classical inner optimiser",
+        description="Simulate a grid cloth held by handles (backward Euler, L_cloth minimised "
+        "per frame by the chosen optimiser). Writes OUT/meshes/000000.ply ..., "
+        "OUT/metrics.json (per frame e_CD x 1e3 and e_3D against the converged reference "
+        "rollout, L_cloth in J, ms per frame), OUT/errors.png and OUT/rollout.gif.",
+    )
+    p.add_argument("--res", type=_res, default=(64, 64), help="N or HxW grid (default 64)")
+    p.add_argument("--size", type=float, default=1.0, help="sheet width, m (default 1)")
+    p.add_argument("--handles", choices=sorted(LAYOUTS), default="corners")
+    p.add_argument("--motion", choices=list(MOTIONS), default="xy")
+    p.add_argument("--speed", type=float, default=1.0, help="factor on the base speed")
+    p.add_argument("--frames", type=int, default=120, help="frames at 60 fps")
+    p.add_argument("--optimizer", choices=list(OPTIMIZERS), default="fnopt")
+    p.add_argument("--iters", type=int, default=10, help="inner iterations per frame")
+    p.add_argument("--lr", type=float, default=None, help="gd/adam step size, lbfgs step")
+    p.add_argument("--stretch", type=float, default=300.0, help="N/m (100..1000)")
+    p.add_argument("--shear", type=float, default=10.0, help="N/m (1..100)")
+    p.add_argument("--bend", type=float, default=1.0, help="mJ (0.01..10)")
+    p.add_argument("--repulsion", type=float, default=0.0,
+                   help="weight (J) of the repulsion term, eq. (28); 0: off")
+    p.add_argument("--no-reference", action="store_true",
+                   help="skip the converged reference (no e_CD / e_3D)")
+    p.add_argument("--gif-every", type=int, default=2, help="GIF frame stride")
+    p.add_argument("-o", "--out", required=True, help="output folder")
+    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run_simulate)
+
+
+def run_simulate(args: argparse.Namespace) -> int:
+    """Body of ``polygeo simulate``."""
+    from polygeo import runs
+
+    from .cloth import Material
+    from .simulate import SimSettings, reference_rollout, run, write_outputs
+
+    _threads(args.threads)
+    s = SimSettings(res=args.res, size=args.size, handles=args.handles, motion=args.motion,
+                    speed=args.speed, frames=args.frames, optimizer=args.optimizer,
+                    iters=args.iters, lr=args.lr,
+                    material=Material(args.stretch, args.shear, args.bend),
+                    repulsion=args.repulsion)
+    out = Path(args.out)
+    bar = runs.progress(total=s.frames, desc=s.optimizer, quiet=args.quiet)
+    ro = run(s, progress=lambda: bar.update(1))
+    bar.close()
+    ref = None
+    if not args.no_reference:
+        if s.optimizer == "reference" and s.repulsion == 0:
+            ref = ro
+        else:
+            bar = runs.progress(total=s.frames, desc="reference", quiet=args.quiet)
+            ref = reference_rollout(s, out, progress=lambda: bar.update(1))
+            bar.close()
+    res = write_outputs(out, s, ro, ref, gif_every=args.gif_every)
+    print(json.dumps(res["mean"]))
+    return 0

@@ -1,0 +1,215 @@
+"""The FNO and the learned optimiser of Algorithm 2.
+
+Spectral convolutions are written here with ``torch.fft`` (a few lines) rather than taken from
+``neuraloperator``: that library pulls about 200 MB of dependencies (wandb, tensorly, h5py,
+opentelemetry) and its import breaks when a broken Open3D is present; the layer below is the
+same operator (truncated Fourier multiplication on the lowest ``modes`` frequencies plus a
+pointwise linear path, GELU), and our grids are small enough that nothing else is needed.
+
+Resolution independence: ``torch.fft.rfft2``/``irfft2`` with the default normalisation keep a
+mode's amplitude independent of the grid size, and every input is a field in physical units
+made scale-free (the residual and the previous update divided by the residual's RMS; material
+numbers as dimensionless stiffness ratios), so one set of weights runs at any ``H x W``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from .solvers import StepProblem
+
+__all__ = ["FNOConfig", "SpectralConv2d", "FNO", "features", "fno_direction", "fnopt_iteration",
+           "solve_fnopt",
+           "N_INPUTS", "load_pretrained", "n_parameters", "stiffness_numbers", "WEIGHTS"]
+
+#: Input channels: preconditioned gradient (3), the previous one (3), previous update (3), mask (1),
+#: three stiffness numbers (3), two grid coordinates (2).
+N_INPUTS = 15
+
+
+@dataclass(frozen=True)
+class FNOConfig:
+    """FNO hyper-parameters (thesis: 4 layers, 8 x 8 modes, width 64, projection 64)."""
+
+    width: int = 32
+    modes: int = 8
+    layers: int = 4
+    projection: int = 64
+
+    def __post_init__(self) -> None:
+        for k, v in asdict(self).items():
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"FNOConfig.{k}: expected an int >= 1, got {v!r}")
+
+
+class SpectralConv2d(nn.Module):
+    """Truncated Fourier multiplication with learned complex ``C_in x C_out`` matrices.
+
+    The lowest ``modes x modes`` frequencies (both signs along rows, non-negative along
+    columns) are multiplied; the others are dropped.
+    """
+
+    def __init__(self, c_in: int, c_out: int, modes: int):
+        super().__init__()
+        self.modes = modes
+        scale = 1.0 / (c_in * c_out)
+        self.w = nn.Parameter(scale * torch.randn(2, c_in, c_out, modes, modes, 2))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``x`` ``(B, C, H, W)`` -> ``(B, C_out, H, W)``."""
+        b, _, h, w = x.shape
+        f = torch.fft.rfft2(x)
+        m1, m2 = min(self.modes, h // 2), min(self.modes, w // 2 + 1)
+        out = torch.zeros(b, self.w.shape[2], h, w // 2 + 1, dtype=f.dtype, device=x.device)
+        wc = torch.view_as_complex(self.w)
+        out[:, :, :m1, :m2] = torch.einsum("bixy,ioxy->boxy", f[:, :, :m1, :m2],
+                                           wc[0, :, :, :m1, :m2])
+        out[:, :, h - m1:, :m2] = torch.einsum("bixy,ioxy->boxy", f[:, :, h - m1:, :m2],
+                                               wc[1, :, :, :m1, :m2])
+        return torch.fft.irfft2(out, s=(h, w))
+
+
+class FNO(nn.Module):
+    """The Fourier neural operator.
+
+    Lifting (1x1), ``layers`` Fourier layers (spectral + 1x1, GELU), projection (1x1, GELU,
+    1x1) to 3 channels. Input ``(B, N_INPUTS, H, W)``, output ``(B, 3, H, W)``.
+    """
+
+    def __init__(self, config: FNOConfig = FNOConfig()):
+        super().__init__()
+        self.config = config
+        c = config.width
+        self.lift = nn.Conv2d(N_INPUTS, c, 1)
+        self.spectral = nn.ModuleList(SpectralConv2d(c, c, config.modes)
+                                      for _ in range(config.layers))
+        self.pointwise = nn.ModuleList(nn.Conv2d(c, c, 1) for _ in range(config.layers))
+        self.proj1 = nn.Conv2d(c, config.projection, 1)
+        self.proj2 = nn.Conv2d(config.projection, 3, 1)
+        nn.init.zeros_(self.proj2.bias)
+        with torch.no_grad():
+            self.proj2.weight.mul_(0.01)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Map features ``(B, N_INPUTS, H, W)`` to updates ``(B, 3, H, W)``."""
+        y = self.lift(x)
+        for k, (sp, pw) in enumerate(zip(self.spectral, self.pointwise)):
+            y = sp(y) + pw(y)
+            if k < len(self.spectral) - 1:
+                y = nn.functional.gelu(y)
+        return self.proj2(nn.functional.gelu(self.proj1(y)))
+
+
+def stiffness_numbers(p: StepProblem) -> torch.Tensor:
+    """Dimensionless stiffness numbers ``(B, 3)``, log10, centred.
+
+    ``dt^2 k / (rho h^2)`` for stretch and shear, ``dt^2 k_b / (rho h^4)`` for bending (``h``:
+    the mean spacing).
+    """
+    h = 0.5 * (p.hx + p.hy)
+    rho = p.material["density"]
+    dt2 = p.dt * p.dt
+    s = dt2 * p.material["stretch"] / (rho * h * h)
+    sh = dt2 * p.material["shear"] / (rho * h * h)
+    b = dt2 * 1e-3 * p.material["bend"] / (rho * h ** 4)
+    return torch.stack([(torch.log10(s) - 3.0) / 1.0, (torch.log10(sh) - 1.5) / 1.0,
+                        (torch.log10(b) - 1.0) / 1.5], 1)
+
+
+def features(p: StepProblem, z: torch.Tensor, z_prev: torch.Tensor, da_prev: torch.Tensor,
+             scale: torch.Tensor) -> torch.Tensor:
+    """The FNO's input ``(B, N_INPUTS, H, W)``; fields ``(B, H, W, 3)`` divided by ``scale``."""
+    b, h, w, _ = z.shape
+    s = scale[:, None, None, None]
+    mask = (1.0 - p.free[..., 0]).expand(b, h, w)[:, None]
+    stiff = stiffness_numbers(p).to(z.dtype)[:, :, None, None].expand(b, 3, h, w)
+    yy, xx = torch.meshgrid(torch.linspace(-1, 1, h, dtype=z.dtype),
+                            torch.linspace(-1, 1, w, dtype=z.dtype), indexing="ij")
+    coords = torch.stack([yy, xx])[None].expand(b, 2, h, w)
+    fields = torch.cat([z / s, z_prev / s, da_prev / s], -1).permute(0, 3, 1, 2)
+    return torch.cat([fields, mask, stiff, coords], 1)
+
+
+def fno_direction(model: FNO, p: StepProblem, z, z_prev, da_prev) -> torch.Tensor:
+    """The update direction ``(B, H, W, 3)`` (m/s^2), zero at handles.
+
+    ``z = P g`` is the gradient in the metric of
+    :func:`draping.fnopt.solvers.laplace_preconditioner`; the FNO sees ``z``, the previous
+    ``z`` and the previous update, divided by ``z``'s RMS, and corrects the steepest-descent
+    direction: ``d = -z + RMS(z) F(...)``.
+    """
+    scale = p.residual_rms(z).clamp(min=1e-12)
+    y = model(features(p, z, z_prev, da_prev, scale)).permute(0, 2, 3, 1)
+    return (y * scale[:, None, None, None] - z) * p.free
+
+
+def fnopt_iteration(model: FNO, p: StepProblem, pre, a, z_prev, da_prev,
+                    create_graph: bool = False):
+    """One inner iteration of Algorithm 2: ``(a + Delta a, z, Delta a, g)``.
+
+    ``Delta a = t d`` with ``d`` from :func:`fno_direction` and ``t`` the minimiser of the
+    quadratic model of ``L_cloth`` along ``d`` (one Hessian-vector product), which keeps the
+    learned part scale-free: the FNO chooses directions, the energy their length.
+    """
+    val, g, hvp = p.grad_hvp(a)
+    z = pre(g) * p.free
+    d = fno_direction(model, p, z, z_prev, da_prev)
+    if create_graph:
+        t = p.exact_step(g, d, lambda v: hvp(v, create_graph=True))
+    else:
+        t = p.exact_step(g, d.detach(), hvp)
+    da = t * d
+    return a + da, z, da, g
+
+
+def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None) -> torch.Tensor:
+    """Algorithm 2: ``iters`` learned updates from ``a = 0``; returns the accelerations."""
+    from .solvers import laplace_preconditioner
+
+    pre = laplace_preconditioner(p)
+    a = torch.zeros_like(p.x_prev) if a0 is None else (a0 * p.free).clone()
+    z_prev = torch.zeros_like(a)
+    da = torch.zeros_like(a)
+    for _ in range(iters):
+        with torch.no_grad():
+            a, z_prev, da, _ = fnopt_iteration(model, p, pre, a, z_prev, da)
+    return p.compose(a)
+
+
+def n_parameters(model: nn.Module) -> int:
+    """Number of trainable parameters."""
+    return sum(int(math.prod(q.shape)) for q in model.parameters())
+
+
+#: The shipped weights (trained by ``polygeo train-fnopt``) and their JSON record.
+WEIGHTS = Path(__file__).resolve().parent.parent / "data" / "fnopt_model.pt"
+RECORD = WEIGHTS.with_suffix(".json")
+
+
+def load_pretrained(path: str | Path | None = None) -> FNO:
+    """The trained FNO optimiser (default: the shipped ``draping/data/fnopt_model.pt``).
+
+    The config comes from the JSON record beside the weights; the weights are read with
+    ``torch.load(weights_only=True)``.
+
+    Raises
+    ------
+    FileNotFoundError
+        If the weights or their JSON record are missing.
+    """
+    p = Path(path) if path is not None else WEIGHTS
+    rec = p.with_suffix(".json")
+    if not p.is_file() or not rec.is_file():
+        raise FileNotFoundError(f"FNOpt weights: expected {p} and {rec} (train them with "
+                                "`polygeo train-fnopt`)")
+    cfg = FNOConfig(**json.loads(rec.read_text())["config"])
+    model = FNO(cfg)
+    model.load_state_dict(torch.load(p, map_location="cpu", weights_only=True))
+    model.eval()
+    return model

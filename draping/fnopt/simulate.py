@@ -1,0 +1,208 @@
+"""Rollouts with any inner optimiser, their metrics against the converged reference, files.
+
+Metrics per frame: ``e_CD`` (polygeo's public Chamfer distance with 10 000 area-uniform
+samples per surface, both meshes normalised by the reference's unit sphere, times 1e3),
+``e_3D`` (``||X - X_ref||_F / ||X_ref - mean(X_ref)||_F``, a relative vertex error that does not
+depend on where the origin is), ``L_cloth`` (J) and milliseconds per frame of the optimiser.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from . import cloth
+from .handles import DT, check_motion
+from .solvers import CLASSICAL, REFERENCE_TOL, Rollout, rollout, solve_reference
+
+__all__ = ["SimSettings", "OPTIMIZERS", "DEFAULT_LR", "step_function", "run", "e_cd", "e_3d",
+           "frame_metrics", "reference_rollout", "write_outputs"]
+
+#: Optimisers of ``polygeo simulate``.
+OPTIMIZERS = ("fnopt", "gd", "adam", "lbfgs", "reference")
+
+#: Default step sizes (mass metric; chosen by the sweep of ``benchmarks/bm_fnopt.py``).
+DEFAULT_LR = {"gd": 2e-3, "adam": 0.1, "lbfgs": 1.0}
+
+
+@dataclass
+class SimSettings:
+    """A rollout: grid ``res`` (H, W), sheet width ``size`` (m), handles, motion, optimiser."""
+
+    res: tuple = (64, 64)
+    size: float = 1.0
+    handles: str = "corners"
+    motion: str = "xy"
+    speed: float = 1.0
+    frames: int = 120
+    optimizer: str = "fnopt"
+    iters: int = 10
+    lr: float | None = None
+    material: cloth.Material = field(default_factory=cloth.Material)
+    repulsion: float = 0.0
+    orientation: str = "vertical"
+
+    def __post_init__(self) -> None:
+        if self.optimizer not in OPTIMIZERS:
+            raise ValueError(f"optimizer: expected one of {list(OPTIMIZERS)}, "
+                             f"got {self.optimizer!r}")
+        check_motion(self.motion)
+        cloth.layout_points(self.handles)
+        if isinstance(self.iters, bool) or not isinstance(self.iters, int) or self.iters < 1:
+            raise ValueError(f"iters: expected an int >= 1, got {self.iters!r}")
+        if isinstance(self.frames, bool) or not isinstance(self.frames, int) or \
+                self.frames < 1:
+            raise ValueError(f"frames: expected an int >= 1, got {self.frames!r}")
+        self.res = tuple(int(r) for r in self.res)
+
+    def sheet(self) -> cloth.Sheet:
+        """The grid sheet."""
+        return cloth.Sheet(self.res[0], self.res[1], self.size)
+
+    def key(self) -> dict:
+        """What the reference rollout depends on."""
+        d = asdict(self)
+        for k in ("optimizer", "iters", "lr"):
+            d.pop(k)
+        return d
+
+
+def step_function(settings: SimSettings, model=None):
+    """``step(problem, a_prev) -> a`` for the settings' optimiser (``model``: an FNO)."""
+    name, n = settings.optimizer, settings.iters
+    if name == "reference":
+        return lambda p, a0: solve_reference(p, a0)
+    if name == "fnopt":
+        from .model import load_pretrained, solve_fnopt
+
+        net = model if model is not None else load_pretrained()
+        return lambda p, a0: solve_fnopt(net, p, n)
+    lr = settings.lr if settings.lr is not None else DEFAULT_LR[name]
+    if name == "lbfgs":
+        return lambda p, a0: CLASSICAL[name](p, n, step=lr)
+    return lambda p, a0: CLASSICAL[name](p, n, lr=lr)
+
+
+def run(settings: SimSettings, model=None, progress=None) -> Rollout:
+    """Roll the settings out (the reference warm-starts from the previous acceleration)."""
+    return rollout(settings.sheet(), settings.material, settings.handles, settings.motion,
+                   settings.frames, step_function(settings, model), settings.speed, DT,
+                   settings.orientation, settings.repulsion,
+                   warm_start=settings.optimizer == "reference", progress=progress)
+
+
+def reference_rollout(settings: SimSettings, cache_dir: str | Path | None = None,
+                      progress=None) -> Rollout:
+    """The converged reference of ``settings`` (cached as NPZ in ``cache_dir``)."""
+    from polygeo import runs
+
+    ref = SimSettings(**{**asdict(settings), "material": settings.material,
+                         "optimizer": "reference"})
+    path = None
+    if cache_dir is not None:
+        fp = runs.fingerprint({**ref.key(), "tol": REFERENCE_TOL,
+                               "material": asdict(settings.material)})
+        path = Path(cache_dir) / f"reference_{fp}.npz"
+        if path.is_file():
+            z = np.load(path)
+            return Rollout(torch.from_numpy(z["positions"]), z["loss"].tolist(),
+                           z["ms"].tolist(), torch.from_numpy(z["handles"]))
+    ro = run(ref, progress=progress)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        buf = {"positions": ro.positions.numpy(), "loss": np.asarray(ro.loss),
+               "ms": np.asarray(ro.ms), "handles": ro.handles.numpy()}
+        runs.atomic_write(path, lambda fh: np.savez(fh, **buf))
+    return ro
+
+
+def e_cd(x: torch.Tensor, x_ref: torch.Tensor, faces: np.ndarray, faces_ref: np.ndarray,
+         seed: int = 0) -> float:
+    """Chamfer distance x 1e3 (10k samples; unit sphere of the reference) of two meshes."""
+    from polygeo.patches import chamfer_distance
+
+    return 1e3 * float(chamfer_distance(
+        np.asarray(x_ref, dtype=np.float64).reshape(-1, 3), faces_ref,
+        np.asarray(x, dtype=np.float64).reshape(-1, 3), faces, n_samples=10000, seed=seed))
+
+
+def e_3d(x: torch.Tensor, x_ref: torch.Tensor) -> float:
+    """``||X - X_ref||_F / ||X_ref - mean(X_ref)||_F`` (same vertex order)."""
+    a = torch.as_tensor(x, dtype=torch.float64).reshape(-1, 3)
+    b = torch.as_tensor(x_ref, dtype=torch.float64).reshape(-1, 3)
+    return float((a - b).norm() / (b - b.mean(0)).norm().clamp(min=1e-30))
+
+
+def frame_metrics(ro: Rollout, ref: Rollout, every: int = 1) -> dict:
+    """Per-frame e_CD, e_3D (frames 1, 1 + every, ...) of a rollout against its reference."""
+    h, w = ro.positions.shape[1:3]
+    hr, wr = ref.positions.shape[1:3]
+    f = cloth.grid_faces(h, w).numpy()
+    fr = cloth.grid_faces(hr, wr).numpy()
+    frames = list(range(1, ro.positions.shape[0], every))
+    same = (h, w) == (hr, wr)
+    cd = [e_cd(ro.positions[k], ref.positions[k], f, fr) for k in frames]
+    e3 = [e_3d(ro.positions[k], ref.positions[k]) if same else float("nan") for k in frames]
+    return {"frames": frames, "e_cd": cd, "e_3d": e3}
+
+
+def summary(values) -> float:
+    """Mean of the finite values (nan if none)."""
+    v = np.asarray(values, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    return float(v.mean()) if v.size else float("nan")
+
+
+def write_outputs(out_dir: str | Path, settings: SimSettings, ro: Rollout,
+                  ref: Rollout | None, gif_every: int = 2, quiet: bool = True) -> dict:
+    """PLY per frame, ``metrics.json``, ``errors.png`` and ``rollout.gif`` in ``out_dir``."""
+    from polygeo import io as pio
+    from polygeo import runs
+
+    from .. import viz
+
+    out = Path(out_dir)
+    h, w = ro.positions.shape[1:3]
+    faces = cloth.grid_faces(h, w).numpy()
+    for k in range(ro.positions.shape[0]):
+        pio.write_ply(out / "meshes" / f"{k:06d}.ply",
+                      ro.positions[k].reshape(-1, 3).numpy().astype(np.float32), faces)
+    t0 = time.perf_counter()
+    m = frame_metrics(ro, ref) if ref is not None else None
+    per_frame = []
+    for k in range(1, ro.positions.shape[0]):
+        rec = {"frame": k, "L_cloth": ro.loss[k - 1], "ms": ro.ms[k - 1]}
+        if m is not None:
+            rec["e_cd"] = m["e_cd"][k - 1]
+            rec["e_3d"] = m["e_3d"][k - 1]
+        per_frame.append(rec)
+    res = {"settings": {**asdict(settings), "material": asdict(settings.material)},
+           "reference_tol_m_s2": REFERENCE_TOL,
+           "mean": {"L_cloth": summary(ro.loss), "ms": summary(ro.ms)},
+           "frames": per_frame, "metric_seconds": time.perf_counter() - t0}
+    if m is not None:
+        res["mean"]["e_cd"] = summary(m["e_cd"])
+        res["mean"]["e_3d"] = summary(m["e_3d"])
+        viz.plot_curves({"e_CD x 1e3": m["e_cd"], "e_3D x 1e2": [100 * e for e in m["e_3d"]]},
+                        out / "errors.png", x={"e_CD x 1e3": m["frames"],
+                                               "e_3D x 1e2": m["frames"]},
+                        xlabel="frame", title=f"{settings.optimizer} vs reference")
+    else:
+        viz.plot_curves({"L_cloth (J)": ro.loss}, out / "errors.png", xlabel="frame")
+    runs.atomic_write_json(out / "metrics.json", res)
+    sel = list(range(0, ro.positions.shape[0], max(gif_every, 1)))
+    pts = [ro.handles[k].numpy() for k in sel]
+    imgs = viz.render_frames([ro.positions[k].reshape(-1, 3).numpy() for k in sel], faces,
+                             points=pts)
+    viz.write_gif(imgs, out / "rollout.gif", fps=60 / max(gif_every, 1))
+    return res
+
+
+def settings_json(s: SimSettings) -> str:
+    """The settings as JSON."""
+    return json.dumps({**asdict(s), "material": asdict(s.material)})

@@ -1,0 +1,406 @@
+"""One backward-Euler time step as an optimisation problem, classical inner optimisers, rollouts.
+
+Every optimiser works in the mass metric: the variable is the acceleration ``a`` (m/s^2) and
+the *residual* ``r = M^-1 dL/da / dt^2`` (m/s^2, ``a - f / m`` when only inertia and forces
+act) is what the learned optimiser sees and what the tolerances are stated in. That metric makes
+step sizes resolution-independent: GD with ``lr = 1`` is exact for the inertia term alone at any
+grid size.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import torch
+
+from . import cloth
+from .handles import DT, trajectory
+
+__all__ = ["StepProblem", "make_problem", "laplace_preconditioner", "solve_pgd", "solve_gd",
+           "solve_adam", "solve_lbfgs", "solve_reference", "Rollout", "rollout", "CLASSICAL",
+           "REFERENCE_TOL"]
+
+#: Tolerance of the converged reference: RMS residual over the free vertices, m/s^2 (about
+#: 5e-3 g; the residual bounds the acceleration error, since the Hessian is at least the mass
+#: term: a position error below ``dt^2 * tol`` = 1.4e-5 m per step).
+REFERENCE_TOL = 5e-2
+
+
+@dataclass
+class StepProblem:
+    """``L_cloth(a)`` of one time step for a batch of sheets; handles fixed.
+
+    Attributes
+    ----------
+    x_prev, v_prev : torch.Tensor
+        State ``(B, H, W, 3)`` (m, m/s).
+    hx, hy : torch.Tensor
+        Spacings ``(B,)``, m.
+    material : dict
+        ``(B,)`` tensors stretch, shear, bend, density, damping (see :class:`cloth.Material`).
+    dt : float
+        Time step, s.
+    free : torch.Tensor
+        ``(B or 1, H, W, 1)`` 1 at free vertices, 0 at handles.
+    a_fixed : torch.Tensor
+        ``(B, H, W, 3)`` handle accelerations (0 at free vertices).
+    mass : torch.Tensor
+        Lumped masses ``(B, H, W)``, kg.
+    extra : callable, optional
+        ``x -> (B,)`` extra energy (J), e.g. repulsion.
+    """
+
+    x_prev: torch.Tensor
+    v_prev: torch.Tensor
+    hx: torch.Tensor
+    hy: torch.Tensor
+    material: dict
+    dt: float
+    free: torch.Tensor
+    a_fixed: torch.Tensor
+    mass: torch.Tensor
+    extra: Callable | None = None
+    evals: int = field(default=0)
+
+    def compose(self, a: torch.Tensor) -> torch.Tensor:
+        """Accelerations with the handles' ones in place."""
+        return a * self.free + self.a_fixed
+
+    def loss(self, a: torch.Tensor) -> torch.Tensor:
+        """``L_cloth`` ``(B,)`` in J of (free) accelerations ``a``."""
+        a = self.compose(a)
+        out = cloth.cloth_loss(a, self.x_prev, self.v_prev, self.hx, self.hy, self.material,
+                               self.dt, self.mass)
+        if self.extra is not None:
+            out = out + self.extra(cloth.positions_from_accel(a, self.x_prev, self.v_prev,
+                                                              self.dt))
+        return out
+
+    def loss_grad(self, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(L (B,), dL/da (B, H, W, 3))``, zero gradient at handles; both detached."""
+        self.evals += 1
+        with torch.enable_grad():
+            a = a.detach().requires_grad_(True)
+            val = self.loss(a)
+            (g,) = torch.autograd.grad(val.sum(), a)
+        return val.detach(), g * self.free
+
+    def grad_hvp(self, a: torch.Tensor):
+        """``(L, g, hvp)`` at ``a``: loss ``(B,)``, gradient and ``d -> H d``.
+
+        ``H d``: the Hessian of ``L_cloth`` times a direction (a double-backward pass per call).
+        """
+        self.evals += 1
+        with torch.enable_grad():
+            a = a.detach().requires_grad_(True)
+            val = self.loss(a)
+            (g,) = torch.autograd.grad(val.sum(), a, create_graph=True)
+        free = self.free
+
+        def hvp(d: torch.Tensor, create_graph: bool = False) -> torch.Tensor:
+            with torch.enable_grad():
+                (hd,) = torch.autograd.grad(g, a, grad_outputs=d * free, retain_graph=True,
+                                            create_graph=create_graph)
+            return hd * free
+
+        return val.detach(), g.detach() * free, hvp
+
+    def exact_step(self, g: torch.Tensor, d: torch.Tensor, hvp) -> torch.Tensor:
+        """Minimiser ``(B, 1, 1, 1)`` of the quadratic model of ``L(a + t d)`` (``t >= 0``).
+
+        Falls back to the inertia-only step when the curvature along ``d`` is not positive.
+        """
+        hd = hvp(d)
+        gd = (g * d).sum((1, 2, 3))
+        dhd = (d * hd).sum((1, 2, 3))
+        dmd = ((self.mass[..., None] * self.dt * self.dt) * d * d * self.free).sum((1, 2, 3))
+        curv = torch.where(dhd > 0, dhd, dmd).clamp(min=1e-30)
+        return (-gd / curv).clamp(min=0.0)[:, None, None, None]
+
+    def precondition(self, g: torch.Tensor) -> torch.Tensor:
+        """The residual ``M^-1 g / dt^2`` (m/s^2)."""
+        return g / (self.mass[..., None] * self.dt * self.dt)
+
+    def residual_rms(self, r: torch.Tensor) -> torch.Tensor:
+        """RMS ``(B,)`` over the free vertices' residual components."""
+        n = (self.free.expand(r.shape[:-1] + (1,)).sum((1, 2, 3)) * 3).clamp(min=1)
+        return ((r * self.free).square().sum((1, 2, 3)) / n).sqrt()
+
+
+def make_problem(x_prev, v_prev, idx, target, hx, hy, material: dict, dt: float = DT,
+                 extra=None) -> StepProblem:
+    """Build the step problem of states ``(B, H, W, 3)`` with handles ``idx`` on ``target``.
+
+    ``idx``: ``(K, 2)`` grid indices; ``target``: ``(B, K, 3)`` handle positions at the end of
+    the step (m). ``hx``, ``hy``: floats or ``(B,)``.
+
+    Raises
+    ------
+    ValueError
+        On non-grid or non-finite states, or handles out of range.
+    """
+    b, h, w = cloth.check_grid(x_prev, "x_prev")
+    cloth.check_grid(v_prev, "v_prev")
+    if v_prev.shape != x_prev.shape:
+        raise ValueError(f"v_prev: expected shape {tuple(x_prev.shape)}, got "
+                         f"{tuple(v_prev.shape)}")
+    idx = cloth.handle_indices(idx, h, w) if isinstance(idx, torch.Tensor) else \
+        cloth.handle_indices(idx, h, w)
+    dtype = x_prev.dtype
+    target = torch.as_tensor(target, dtype=dtype).reshape(b, idx.shape[0], 3)
+    if not bool(torch.isfinite(target).all()):
+        raise ValueError("target: contains NaN or inf")
+    hx = torch.as_tensor(hx, dtype=dtype).reshape(-1).expand(b)
+    hy = torch.as_tensor(hy, dtype=dtype).reshape(-1).expand(b)
+    mat = {k: torch.as_tensor(v, dtype=dtype).reshape(-1).expand(b) for k, v in material.items()}
+    mass = cloth.vertex_mass(h, w, hx, hy, mat["density"], dtype)
+    free = (1.0 - cloth.handle_mask(idx, h, w, dtype))[None, :, :, None]
+    a_fixed = torch.zeros_like(x_prev)
+    a_fixed[:, idx[:, 0], idx[:, 1]] = cloth.handle_accel(x_prev, v_prev, idx, target, dt)
+    return StepProblem(x_prev, v_prev, hx, hy, mat, dt, free, a_fixed, mass, extra)
+
+
+def solve_gd(p: StepProblem, iters: int, lr: float = 0.5, a0=None) -> torch.Tensor:
+    """Gradient descent in the mass metric: ``a -= lr * r`` (``lr`` dimensionless)."""
+    a = torch.zeros_like(p.x_prev) if a0 is None else a0.clone()
+    for _ in range(iters):
+        _, g = p.loss_grad(a)
+        a = a - lr * p.precondition(g)
+    return p.compose(a)
+
+
+def solve_pgd(p: StepProblem, iters: int, k_eff: float = 1.0, a0=None) -> torch.Tensor:
+    """Steepest descent in the metric of :func:`laplace_preconditioner`, exact quadratic step."""
+    pre = laplace_preconditioner(p, k_eff)
+    a = torch.zeros_like(p.x_prev) if a0 is None else a0.clone()
+    for _ in range(iters):
+        _, g, hvp = p.grad_hvp(a)
+        d = -pre(g) * p.free
+        a = a + p.exact_step(g, d, hvp) * d
+    return p.compose(a)
+
+
+def solve_adam(p: StepProblem, iters: int, lr: float = 1.0, betas=(0.9, 0.999),
+               eps: float = 1e-8, a0=None) -> torch.Tensor:
+    """Adam on the residual ``r`` (``lr`` in m/s^2 per iteration)."""
+    a = torch.zeros_like(p.x_prev) if a0 is None else a0.clone()
+    m = torch.zeros_like(a)
+    v = torch.zeros_like(a)
+    for k in range(1, iters + 1):
+        _, g = p.loss_grad(a)
+        r = p.precondition(g)
+        m = betas[0] * m + (1 - betas[0]) * r
+        v = betas[1] * v + (1 - betas[1]) * r * r
+        mh = m / (1 - betas[0] ** k)
+        vh = v / (1 - betas[1] ** k)
+        a = a - lr * mh / (vh.sqrt() + eps)
+    return p.compose(a)
+
+
+def laplace_preconditioner(p: StepProblem, k_eff: float = 1.0):
+    """``g -> H0^-1 g``, a linear model of the step's Hessian inverted by DCT.
+
+    ``H0 = m dt^2 + dt^4 (k_eff k_s L + 1e-3 k_b h^2 L^2)`` with ``L`` the Neumann grid
+    Laplacian (``O(HW log HW)``): the inertia, the in-plane stiffness of a sheet at rest and
+    the plate bending stiffness, per coordinate. A fixed, resolution-aware metric; the
+    classical optimisers and the FNO use it through :func:`solve_pgd` and
+    :func:`draping.fnopt.model.fno_update`.
+    """
+    import numpy as np
+    from scipy.fft import dctn, idctn
+
+    _, h, w, _ = p.x_prev.shape
+    hx = p.hx.double().numpy()[:, None, None]
+    hy = p.hy.double().numpy()[:, None, None]
+    rho = p.material["density"].double().numpy()[:, None, None]
+    ks = k_eff * p.material["stretch"].double().numpy()[:, None, None]
+    kb = 1e-3 * p.material["bend"].double().numpy()[:, None, None]
+    lam_r = (2 - 2 * np.cos(np.pi * np.arange(h) / h))[None, :, None]
+    lam_c = (2 - 2 * np.cos(np.pi * np.arange(w) / w))[None, None, :]
+    dt2 = p.dt * p.dt
+    lap = lam_r / (hy * hy) + lam_c / (hx * hx)          # 1/m^2
+    den = rho * hx * hy * dt2 + dt2 * dt2 * hx * hy * (ks * lap + kb * lap * lap)
+
+    def apply(g: torch.Tensor) -> torch.Tensor:
+        gn = g.detach().double().numpy()
+        z = idctn(dctn(gn, type=2, axes=(1, 2), norm="ortho") / den[..., None], type=2,
+                  axes=(1, 2), norm="ortho")
+        return torch.from_numpy(z).to(g.dtype)
+
+    return apply
+
+
+def _two_loop(g, s_hist, y_hist, h0=None):
+    q = g.clone()
+    alphas = []
+    for s, y in zip(reversed(s_hist), reversed(y_hist)):
+        rho = 1.0 / (y * s).sum((1, 2, 3), keepdim=True).clamp(min=1e-30)
+        al = rho * (s * q).sum((1, 2, 3), keepdim=True)
+        q = q - al * y
+        alphas.append((rho, al))
+    if h0 is not None:
+        q = h0(q)
+    elif s_hist:
+        s, y = s_hist[-1], y_hist[-1]
+        gamma = (s * y).sum((1, 2, 3), keepdim=True) / (y * y).sum(
+            (1, 2, 3), keepdim=True).clamp(min=1e-30)
+        q = q * gamma
+    for (s, y), (rho, al) in zip(zip(s_hist, y_hist), reversed(alphas)):
+        be = rho * (y * q).sum((1, 2, 3), keepdim=True)
+        q = q + s * (al - be)
+    return q
+
+
+def solve_lbfgs(p: StepProblem, iters: int, history: int = 5, step: float = 1.0,
+                a0=None, line_search: bool = False, tol: float = 0.0,
+                info: dict | None = None, precondition: float = 0.0) -> torch.Tensor:
+    """L-BFGS (two-loop recursion) in the mass-scaled variable ``b = sqrt(m) dt a``.
+
+    ``line_search=False`` (the thesis' baseline): fixed ``step``, no line search.
+    ``line_search=True``: Armijo backtracking, per sheet. Stops early when the RMS residual of
+    every sheet is <= ``tol`` (m/s^2). ``info`` receives ``iterations`` and ``residual``.
+    ``precondition > 0``: the initial inverse Hessian is the grid-Laplacian model of the
+    stretch stiffness (``precondition`` times ``k_s``), solved by DCT, instead of a scaled
+    identity.
+    """
+    sq = (p.mass[..., None].sqrt() * p.dt)              # b = sq * a
+    h0 = None
+    if precondition > 0:
+        pa = laplace_preconditioner(p, precondition)
+
+        def h0(qb):
+            return sq * pa(sq * qb) * p.free
+    a = torch.zeros_like(p.x_prev) if a0 is None else (a0 * p.free).clone()
+    val, g = p.loss_grad(a)
+    gb = g / sq * p.free
+    s_hist, y_hist = [], []
+    it = 0
+    res = p.residual_rms(p.precondition(g))
+    for it in range(1, iters + 1):
+        if tol > 0 and bool((res <= tol).all()):
+            it -= 1
+            break
+        d = -_two_loop(gb, s_hist, y_hist, h0) * p.free
+        t = torch.full((a.shape[0], 1, 1, 1), step, dtype=a.dtype)
+        if line_search:
+            slope = (gb * d).sum((1, 2, 3))
+            bad = slope >= 0                           # not a descent direction: restart
+            if bool(bad.any()):
+                d = torch.where(bad[:, None, None, None], -gb, d)
+                slope = (gb * d).sum((1, 2, 3))
+                s_hist, y_hist = [], []
+            for _ in range(30):
+                new_val = p.loss(a + t * d / sq)
+                # Armijo, with room for rounding once the decrease is below float precision
+                ok = new_val <= val + 1e-4 * t[:, 0, 0, 0] * slope + 1e-13 * val.abs()
+                if bool(ok.all()):
+                    break
+                t = torch.where(ok[:, None, None, None], t, 0.5 * t)
+        a_new = a + t * d / sq
+        val_new, g_new = p.loss_grad(a_new)
+        gb_new = g_new / sq * p.free
+        s, y = (a_new - a) * sq, gb_new - gb
+        if bool(((s * y).sum((1, 2, 3)) > 1e-30).all()):
+            s_hist.append(s)
+            y_hist.append(y)
+            if len(s_hist) > history:
+                s_hist.pop(0)
+                y_hist.pop(0)
+        a, val, gb, g = a_new, val_new, gb_new, g_new
+        res = p.residual_rms(p.precondition(g))
+    if info is not None:
+        info["iterations"] = it
+        info["residual"] = res
+    return p.compose(a)
+
+
+def solve_reference(p: StepProblem, a0=None, tol: float = REFERENCE_TOL,
+                    max_iter: int = 3000, info: dict | None = None,
+                    precondition: float = 0.5) -> torch.Tensor:
+    """The converged reference: L-BFGS (history 20) with Armijo line search in float64.
+
+    Solved until the RMS residual over the free vertices is <= ``tol`` m/s^2 (default
+    :data:`REFERENCE_TOL`), or ``max_iter`` iterations (``info["residual"]`` says which).
+    """
+    dtype = p.x_prev.dtype
+    if dtype != torch.float64:
+        p64 = StepProblem(p.x_prev.double(), p.v_prev.double(), p.hx.double(), p.hy.double(),
+                          {k: v.double() for k, v in p.material.items()}, p.dt,
+                          p.free.double(), p.a_fixed.double(), p.mass.double(), p.extra)
+        a0 = None if a0 is None else a0.double()
+        out = solve_lbfgs(p64, max_iter, history=20, a0=a0, line_search=True, tol=tol,
+                          info=info, precondition=precondition)
+        p.evals += p64.evals
+        return out.to(dtype)
+    return solve_lbfgs(p, max_iter, history=20, a0=a0, line_search=True, tol=tol, info=info,
+                       precondition=precondition)
+
+
+#: The classical optimisers by name: ``f(problem, iters, **kw) -> a``.
+CLASSICAL = {"gd": solve_gd, "adam": solve_adam, "lbfgs": solve_lbfgs}
+
+
+@dataclass
+class Rollout:
+    """A rollout: positions ``(F+1, H, W, 3)`` (m), per-frame ``L_cloth`` (J), ms per frame."""
+
+    positions: torch.Tensor
+    loss: list
+    ms: list
+    handles: torch.Tensor
+    accel: torch.Tensor | None = None
+
+
+def rollout(sheet: cloth.Sheet, material: cloth.Material, layout, motion: str, frames: int,
+            step: Callable, speed: float = 1.0, dt: float = DT, orientation: str = "vertical",
+            repulsion: float = 0.0, warm_start: bool = False, dtype=torch.float32,
+            progress: Callable | None = None) -> Rollout:
+    """Simulate ``frames`` steps from rest; ``step(problem, a_prev) -> a`` solves each step.
+
+    ``warm_start``: ``a_prev`` is the previous frame's acceleration (else ``None``: the
+    solver starts from zero, Algorithm 2). ``repulsion``: weight (J) of eq. (28) with
+    ``delta`` the grid spacing (0: off). ``progress``: called after each frame.
+
+    Raises
+    ------
+    ValueError
+        On a non-finite state (the solver diverged), an unknown layout or motion.
+    """
+    h, w = sheet.height, sheet.width
+    idx = cloth.handle_indices(layout, h, w)
+    x = cloth.rest_positions(sheet, orientation, torch.float64)[None]
+    traj = trajectory(x[0, idx[:, 0], idx[:, 1]], motion, frames, speed, dt)
+    x = x.to(dtype)
+    v = torch.zeros_like(x)
+    mat = material.tensors(1, dtype)
+    out = [x[0].clone()]
+    losses, ms = [], []
+    a_prev = None
+    delta = min(sheet.hx, sheet.hy)
+    for f in range(1, frames + 1):
+        target = traj[f][None].to(dtype)
+        extra = None
+        if repulsion > 0:
+            pairs = cloth.repulsion_pairs(x[0] + dt * v[0], 2 * delta)
+
+            def extra(xx, pairs=pairs):
+                return cloth.repulsion_energy(xx[0], pairs, delta, repulsion)[None]
+        p = make_problem(x, v, idx, target, sheet.hx, sheet.hy, mat, dt, extra)
+        t0 = time.perf_counter()
+        a = step(p, a_prev if warm_start else None)
+        ms.append(1e3 * (time.perf_counter() - t0))
+        with torch.no_grad():
+            p64 = make_problem(x.double(), v.double(), idx, target.double(), sheet.hx,
+                               sheet.hy, material.tensors(1, torch.float64), dt)
+            losses.append(float(p64.loss(a.double())[0]))
+        x, v = cloth.advance(a, x, v, dt, idx, target)
+        if not bool(torch.isfinite(x).all()) or not math.isfinite(losses[-1]):
+            raise ValueError(f"rollout diverged at frame {f} (non-finite state)")
+        a_prev = a
+        out.append(x[0].clone())
+        if progress is not None:
+            progress()
+    return Rollout(torch.stack(out), losses, ms, traj)

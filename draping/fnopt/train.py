@@ -1,0 +1,367 @@
+"""Meta-training of the FNO optimiser with the data-pool scheme, at 32 x 32 only.
+
+The pool holds sheets *in the middle of their inner optimisation*: a state ``(x, v)``, its
+handles and their motion, the current acceleration ``a``, the previous residual and update,
+and the inner-iteration count. A training step takes a batch of pool entries, lets the FNO make
+one update, and minimises the normalised decrease of ``L_cloth``::
+
+    (L(a + Delta a) - L(a)) / (1/2 sum_i |dL/da_i|^2 / (m_i dt^2))
+
+(-1 is the exact minimiser of the inertia term alone; the denominator makes every state and
+iteration count equally), then writes the entries back. An entry whose inner count reaches
+its ``N`` advances one backward-Euler step with the model's own acceleration (the pool grows
+with the model's own rollouts); entries are re-drawn from random initial states (random sheet
+size, material, handles, motion) after their rollout length or when they blow up.
+
+Varying the physical sheet size at a fixed 32 x 32 grid varies the spacing ``h`` and so the
+stiffness numbers ``dt^2 k / (rho h^2)`` the FNO sees: a 0.3 m sheet at 32 x 32 has the spacing
+of a 1 m sheet at 100 x 100 (training stays at 32 x 32).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+
+from . import cloth
+from .handles import DT, ease
+from .model import FNO, FNOConfig, fnopt_iteration, n_parameters, solve_fnopt
+from .solvers import (
+    StepProblem,
+    laplace_preconditioner,
+    make_problem,
+    rollout,
+    solve_lbfgs,
+    solve_reference,
+)
+
+__all__ = ["TrainSettings", "Pool", "train", "validation_set", "evaluate"]
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """Settings of ``polygeo train-fnopt`` (the fingerprint of a resumable run)."""
+
+    width: int = 32
+    modes: int = 8
+    layers: int = 4
+    projection: int = 64
+    res: int = 32
+    pool: int = 64
+    batch: int = 8
+    steps: int = 20000
+    lr: float = 1e-3
+    lr_final: float = 1e-4
+    inner_min: int = 5
+    inner_max: int = 15
+    max_frames: int = 240
+    size_min: float = 0.3
+    size_max: float = 1.5
+    reset_prob: float = 0.02
+    seed: int = 0
+    eval_every: int = 1000
+    checkpoint_every: int = 500
+
+
+class Pool:
+    """The data pool (all tensors ``(P, ...)`` at ``res x res``)."""
+
+    def __init__(self, s: TrainSettings, gen: torch.Generator):
+        self.s = s
+        self.gen = gen
+        n, r = s.pool, s.res
+        self.x = torch.zeros(n, r, r, 3)
+        self.v = torch.zeros(n, r, r, 3)
+        self.a = torch.zeros(n, r, r, 3)
+        self.r_prev = torch.zeros(n, r, r, 3)
+        self.da = torch.zeros(n, r, r, 3)
+        self.hmask = torch.zeros(n, r, r)
+        self.hrest = torch.zeros(n, r, r, 3)
+        self.kind = torch.zeros(n, dtype=torch.int64)       # 0 translate, 1 rotate
+        self.vec = torch.zeros(n, 3)                        # displacement (m) or axis*angle
+        self.duration = torch.ones(n)
+        self.t = torch.zeros(n)
+        self.size = torch.ones(n)
+        self.it = torch.zeros(n, dtype=torch.int64)
+        self.n_inner = torch.zeros(n, dtype=torch.int64)
+        self.frame = torch.zeros(n, dtype=torch.int64)
+        self.max_frame = torch.zeros(n, dtype=torch.int64)
+        self.mat = {k: torch.zeros(n) for k in ("stretch", "shear", "bend", "density",
+                                                "damping")}
+        for i in range(n):
+            self.reset(i)
+
+    def _u(self, *shape) -> torch.Tensor:
+        return torch.rand(*shape, generator=self.gen)
+
+    def reset(self, i: int) -> None:
+        """Draw entry ``i`` afresh: a sheet at rest, random material, handles and motion."""
+        s, r = self.s, self.s.res
+        size = math.exp(math.log(s.size_min) + float(self._u(1)) * math.log(
+            s.size_max / s.size_min))
+        sheet = cloth.Sheet(r, r, size)
+        orient = "vertical" if float(self._u(1)) < 0.7 else "horizontal"
+        x = cloth.rest_positions(sheet, orient)
+        # a random smooth initial perturbation (low modes), up to a few % of the size
+        if float(self._u(1)) < 0.5:
+            uu = torch.linspace(0, math.pi, r)
+            k1, k2 = int(self._u(1) * 3) + 1, int(self._u(1) * 3) + 1
+            bump = torch.sin(k1 * uu)[:, None] * torch.sin(k2 * uu)[None, :]
+            nrm = torch.tensor([0.0, 1.0, 0.0]) if orient == "vertical" else \
+                torch.tensor([0.0, 0.0, 1.0])
+            x = x + 0.05 * size * (2 * self._u(1) - 1) * bump[..., None] * nrm
+        u = float(self._u(1))
+        if u < 0.4:
+            pts = cloth.LAYOUTS["corners"]
+        else:
+            k = 1 + int(self._u(1) * 3)
+            pts = [(float(self._u(1)), float(self._u(1))) for _ in range(k)]
+        idx = torch.unique(torch.tensor([[round(p[0] * (r - 1)), round(p[1] * (r - 1))]
+                                         for p in pts]), dim=0)
+        self.hmask[i] = cloth.handle_mask(idx, r, r)
+        self.hrest[i] = x * self.hmask[i][..., None]
+        self.x[i] = x
+        self.v[i] = 0.0
+        self.kind[i] = int(self._u(1) < 0.3)
+        if self.kind[i] == 0:
+            d = torch.randn(3, generator=self.gen)
+            self.vec[i] = d / d.norm() * size * 0.6 * self._u(1)
+        else:
+            axes = torch.eye(3)
+            ax = axes[2] if float(self._u(1)) < 0.5 else axes[1]
+            self.vec[i] = ax * (2 * self._u(1) - 1) * 0.5 * math.pi
+        speed = math.exp(math.log(0.5) + float(self._u(1)) * math.log(2.5 / 0.5))
+        self.duration[i] = 2.0 / speed
+        self.t[i] = -0.5 * float(self._u(1))
+        self.size[i] = size
+        m = cloth.sample_materials(1, self.gen)
+        for k in self.mat:
+            self.mat[k][i] = m[k][0]
+        self.max_frame[i] = int(30 + self._u(1) * (s.max_frames - 30))
+        self.frame[i] = 0
+        self._reset_inner(i)
+
+    def _reset_inner(self, i) -> None:
+        self.a[i] = 0.0
+        self.r_prev[i] = 0.0
+        self.da[i] = 0.0
+        self.it[i] = 0
+        self.n_inner[i] = int(self.s.inner_min + self._u(1) * (self.s.inner_max -
+                                                                self.s.inner_min + 1))
+
+    def targets(self, ids: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """Handle target grids ``(B, r, r, 3)`` at times ``t`` ``(B,)`` (0 off the handles)."""
+        out = []
+        for j, i in enumerate(ids.tolist()):
+            hm = self.hmask[i][..., None]
+            rest = self.hrest[i]
+            e = float(ease(float(t[j]), float(self.duration[i])))
+            if self.kind[i] == 0:
+                out.append((rest + e * self.vec[i]) * hm)
+            else:
+                c = rest.sum((0, 1)) / self.hmask[i].sum()
+                ang = self.vec[i].norm() * e
+                k = self.vec[i] / self.vec[i].norm().clamp(min=1e-12)
+                p = rest - c
+                cr, sr = math.cos(float(ang)), math.sin(float(ang))
+                rot = p * cr + torch.cross(k.expand_as(p), p, dim=-1) * sr + \
+                    k * (p @ k)[..., None] * (1 - cr)
+                out.append((c + rot) * hm)
+        return torch.stack(out)
+
+    def problem(self, ids: torch.Tensor, dtype=torch.float32) -> tuple[StepProblem, torch.Tensor]:
+        """The step problems of entries ``ids`` and their handle target grids."""
+        r = self.s.res
+        x, v = self.x[ids].to(dtype), self.v[ids].to(dtype)
+        target = self.targets(ids, self.t[ids] + DT).to(dtype)
+        hm = self.hmask[ids].to(dtype)
+        h = (self.size[ids] / (r - 1)).to(dtype)
+        mat = {k: t[ids].to(dtype) for k, t in self.mat.items()}
+        mass = cloth.vertex_mass(r, r, h, h, mat["density"], dtype)
+        free = (1.0 - hm)[..., None]
+        a_fixed = ((target - x) / DT - v) / DT * hm[..., None]
+        return StepProblem(x, v, h, h, mat, DT, free, a_fixed, mass), target
+
+
+def _lr(s: TrainSettings, step: int) -> float:
+    c = 0.5 * (1 + math.cos(math.pi * min(step / max(s.steps, 1), 1.0)))
+    return s.lr_final + (s.lr - s.lr_final) * c
+
+
+def train_step(model: FNO, opt, pool: Pool, s: TrainSettings, step: int) -> float:
+    """One meta-training step on a random batch of the pool; returns the mean loss."""
+    ids = torch.randperm(s.pool, generator=pool.gen)[:s.batch]
+    p, target = pool.problem(ids)
+    a = pool.a[ids]
+    pre = laplace_preconditioner(p)
+    a_new, z, da, g = fnopt_iteration(model, p, pre, a, pool.r_prev[ids], pool.da[ids],
+                                      create_graph=True)
+    p64, _ = pool.problem(ids, torch.float64)
+    with torch.no_grad():
+        l0 = p64.loss(a.double())
+    l1 = p64.loss(a_new.double())
+    # the decrease the metric's exact Newton step would give on a quadratic
+    denom = 0.5 * (g.double() * z.double()).sum((1, 2, 3)).clamp(min=1e-30)
+    q = (l1 - l0) / denom
+    ok = torch.isfinite(q)
+    q = torch.where(ok, q, torch.zeros_like(q))
+    # a blown-up update still has a gradient, but a logarithmic one
+    loss = torch.where(q > 0, torch.log1p(q.clamp(min=0)), q).sum() / max(int(ok.sum()), 1)
+    for grp in opt.param_groups:
+        grp["lr"] = _lr(s, step)
+    opt.zero_grad()
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+    opt.step()
+    with torch.no_grad():
+        pool.a[ids] = a_new.detach().float()
+        pool.r_prev[ids] = z.detach()
+        pool.da[ids] = da.detach().float()
+        pool.it[ids] += 1
+        for j in torch.nonzero(~ok | (q.detach() > 1.0))[:, 0].tolist():
+            pool._reset_inner(int(ids[j]))      # worse than doing nothing: start the step again
+        done = ids[pool.it[ids] >= pool.n_inner[ids]]
+        if done.numel():
+            k = torch.nonzero(pool.it[ids] >= pool.n_inner[ids])[:, 0]
+            a_full = pool.a[done] * p.free[k] + p.a_fixed[k]
+            v_new = pool.v[done] + DT * a_full
+            x_new = pool.x[done] + DT * v_new
+            hm = pool.hmask[done][..., None]
+            x_new = x_new * (1 - hm) + target[k] * hm
+            pool.x[done], pool.v[done] = x_new, v_new
+            pool.t[done] += DT
+            pool.frame[done] += 1
+            for i in done.tolist():
+                bad = not bool(torch.isfinite(pool.x[i]).all()) or \
+                    float(pool.v[i].abs().max()) > 50.0
+                if bad or pool.frame[i] >= pool.max_frame[i]:
+                    pool.reset(i)
+                else:
+                    pool._reset_inner(i)
+        if float(torch.rand(1, generator=pool.gen)) < s.reset_prob:
+            pool.reset(int(torch.randint(s.pool, (1,), generator=pool.gen)))
+    return float(loss.detach())
+
+
+def validation_set(res: int = 32, frames: int = 20) -> list[dict]:
+    """Fixed validation steps, each with its reference minimiser ``L*``.
+
+    States of reference rollouts: 1 m and 0.4 m sheets, four layout/motion pairs, four
+    materials, two frames each.
+    """
+    cases = [("corners", "xy", cloth.Material(300, 10, 1), 1.0),
+             ("diagonal", "rot-a", cloth.Material(800, 50, 0.05), 1.0),
+             ("mid-edges", "z", cloth.Material(150, 3, 5.0), 0.4),
+             ("single", "xyz", cloth.Material(500, 20, 0.3), 0.4)]
+    out = []
+    for layout, motion, mat, size in cases:
+        sheet = cloth.Sheet(res, res, size)
+        ro = rollout(sheet, mat, layout, motion, frames,
+                     lambda p, a0: solve_lbfgs(p, 60, line_search=True), speed=1.5)
+        idx = cloth.handle_indices(layout, res, res)
+        for f in (frames // 2, frames - 1):
+            x = ro.positions[f][None]
+            v = (ro.positions[f] - ro.positions[f - 1])[None] / DT
+            tgt = ro.positions[f + 1][None][:, idx[:, 0], idx[:, 1]]
+            p = make_problem(x, v, idx, tgt, sheet.hx, sheet.hy, mat.tensors(1), DT)
+            a_star = solve_reference(p, None)
+            p64 = make_problem(x.double(), v.double(), idx, tgt.double(), sheet.hx, sheet.hy,
+                               mat.tensors(1, torch.float64), DT)
+            out.append({"problem": p, "p64": p64,
+                        "l_star": float(p64.loss(a_star.double())[0]),
+                        "l_zero": float(p64.loss(torch.zeros_like(x).double())[0])})
+    return out
+
+
+def evaluate(model: FNO, val: list[dict], iters: int = 10) -> float:
+    """Mean relative sub-optimality ``(L(a_N) - L*) / (L(0) - L*)`` over the validation set."""
+    errs = []
+    for c in val:
+        a = solve_fnopt(model, c["problem"], iters)
+        l_n = float(c["p64"].loss(a.double())[0])
+        errs.append(max(l_n - c["l_star"], 0.0) / max(c["l_zero"] - c["l_star"], 1e-30))
+    return float(sum(errs) / len(errs))
+
+
+def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
+          max_minutes: float | None = None, log=print) -> dict:
+    """Train (or resume) in ``out_dir``; returns a summary (see ``polygeo train-fnopt``)."""
+    from polygeo import runs
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(s.seed)
+    gen = torch.Generator().manual_seed(s.seed)
+    cfg = FNOConfig(s.width, s.modes, s.layers, s.projection)
+    model = FNO(cfg)
+    opt = torch.optim.Adam(model.parameters(), lr=s.lr)
+    fp = runs.fingerprint(asdict(s))
+    ck = runs.resume_state(out, fp)
+    history: list = []
+    elapsed = 0.0
+    if ck is None:
+        pool = Pool(s, gen)
+        step = 0
+    else:
+        model.load_state_dict(ck.tensors["model"])
+        opt.load_state_dict(ck.tensors["opt"])
+        pool = Pool.__new__(Pool)
+        pool.s, pool.gen = s, gen
+        for k, v in ck.tensors["pool"].items():
+            setattr(pool, k, v if k != "mat" else dict(v))
+        gen.set_state(ck.tensors["gen"])
+        torch.set_rng_state(ck.tensors["torch_rng"])
+        step, history, elapsed = ck.meta["step"], ck.meta["history"], ck.meta["elapsed"]
+        log(f"resumed at step {step} ({elapsed / 60:.1f} min so far)")
+    t_val = time.perf_counter()
+    val = validation_set(s.res)
+    log(f"validation set: {len(val)} steps ({time.perf_counter() - t_val:.0f} s); "
+        f"model {n_parameters(model)} parameters")
+    jlog = runs.JsonlLog(out / "log.jsonl")
+    bar = runs.progress(total=s.steps, initial=step, desc="train-fnopt", quiet=quiet)
+    t0 = time.perf_counter() - elapsed
+    ema = None
+    pool_keys = ("x", "v", "a", "r_prev", "da", "hmask", "hrest", "kind", "vec", "duration",
+                 "t", "size", "it", "n_inner", "frame", "max_frame", "mat")
+
+    def save():
+        runs.save_checkpoint(out / runs.CHECKPOINT_NAME, {
+            "model": model.state_dict(), "opt": opt.state_dict(),
+            "pool": {k: getattr(pool, k) for k in pool_keys},
+            "gen": gen.get_state(), "torch_rng": torch.get_rng_state()},
+            {"fingerprint": fp, "step": step, "history": history,
+             "elapsed": time.perf_counter() - t0, "settings": asdict(s)})
+
+    stopped = False
+    while step < s.steps:
+        loss = train_step(model, opt, pool, s, step)
+        step += 1
+        ema = loss if ema is None else 0.98 * ema + 0.02 * loss
+        bar.update(1)
+        if step % 50 == 0:
+            bar.set_postfix(loss=f"{ema:.3f}")
+        if step % s.eval_every == 0 or step == s.steps:
+            v = evaluate(model, val)
+            rec = {"step": step, "loss_ema": ema, "val_subopt": v,
+                   "minutes": (time.perf_counter() - t0) / 60}
+            history.append(rec)
+            jlog.append(rec)
+            log(f"step {step}: loss {ema:.4f}  validation sub-optimality (N=10) {v:.4f}")
+        if step % s.checkpoint_every == 0 or step == s.steps:
+            save()
+        if max_minutes is not None and (time.perf_counter() - t0) > 60 * max_minutes:
+            save()
+            stopped = True
+            log(f"stopped at step {step} after {max_minutes} min (resume to continue)")
+            break
+    bar.close()
+    jlog.close()
+    minutes = (time.perf_counter() - t0) / 60
+    torch.save(model.state_dict(), out / "model.pt")
+    return {"settings": asdict(s), "step": step, "minutes": minutes, "history": history,
+            "parameters": n_parameters(model), "finished": not stopped,
+            "val_subopt": history[-1]["val_subopt"] if history else None, "model": model}

@@ -1,0 +1,149 @@
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from draping import viz
+from draping.fnopt import cloth, model, solvers
+from draping.fnopt.cloth import Material, Sheet
+from draping.fnopt.handles import DT
+from draping.fnopt.simulate import SimSettings
+
+torch.set_num_threads(1)
+
+
+def _pretrained():
+    if not model.WEIGHTS.is_file():
+        pytest.skip("no shipped FNOpt weights")
+    return model.load_pretrained()
+
+
+def _mid_rollout_problem(n, layout="corners", motion="xy", frames=8):
+    mat = Material()
+    sheet = Sheet(n, n)
+    ro = solvers.rollout(sheet, mat, layout, motion, frames,
+                         lambda p, a0: solvers.solve_pgd(p, 10), speed=1.5)
+    idx = cloth.handle_indices(layout, n, n)
+    x = ro.positions[-2][None]
+    v = (ro.positions[-2] - ro.positions[-3])[None] / DT
+    tgt = ro.positions[-1][None][:, idx[:, 0], idx[:, 1]]
+    return solvers.make_problem(x, v, idx, tgt, sheet.hx, sheet.hy, mat.tensors(1))
+
+
+def test_spectral_conv_is_resolution_consistent():
+    torch.manual_seed(0)
+    conv = model.SpectralConv2d(2, 3, 4)
+    out = {}
+    for n in (32, 64):
+        u = torch.linspace(0, 1, n + 1)[:-1]          # periodic samples of one function
+        f = torch.stack([torch.sin(2 * math.pi * u)[:, None] * torch.cos(4 * math.pi * u)[None],
+                         torch.cos(2 * math.pi * u)[:, None].expand(n, n)])[None]
+        out[n] = conv(f)
+    # band-limited input: the 64 grid's even samples are the 32 grid's samples
+    assert torch.allclose(out[64][..., ::2, ::2], out[32], atol=1e-5)
+
+
+def test_fno_runs_on_any_grid_and_keeps_handles_fixed():
+    net = model.FNO(model.FNOConfig(width=8, modes=4, layers=2, projection=8))
+    for h, w in ((32, 32), (20, 48), (7, 5)):
+        sheet = Sheet(h, w)
+        x = cloth.rest_positions(sheet)[None]
+        p = solvers.make_problem(x, torch.zeros_like(x), "corner-centre",
+                                 x[:, [0, h // 2], [0, w // 2]], sheet.hx, sheet.hy,
+                                 Material().tensors(1))
+        a = model.solve_fnopt(net, p, 3)
+        assert a.shape == x.shape and bool(torch.isfinite(a).all())
+        idx = cloth.handle_indices("corner-centre", h, w)
+        assert torch.allclose(a[:, idx[:, 0], idx[:, 1]], p.a_fixed[:, idx[:, 0], idx[:, 1]])
+
+
+@pytest.mark.parametrize("n", [32, 64, 100])
+def test_trained_optimizer_lowers_the_loss_within_10_iterations(n):
+    net = _pretrained()
+    p = _mid_rollout_problem(n)
+    l0 = float(p.loss(torch.zeros_like(p.x_prev))[0])
+    losses = []
+    for it in (1, 3, 10):
+        losses.append(float(p.loss(model.solve_fnopt(net, p, it))[0]))
+    assert losses[-1] < losses[0] < l0
+    # and it gets most of the way to the converged minimum
+    l_star = float(p.loss(solvers.solve_reference(p))[0])
+    assert (losses[-1] - l_star) < 0.5 * (l0 - l_star)
+
+
+@pytest.mark.slow
+def test_500_frame_rollout_at_100_is_finite_and_bounded():
+    net = _pretrained()
+    sheet = Sheet(100, 100)
+    ro = solvers.rollout(sheet, Material(), "corners", "xyz", 500,
+                         lambda p, a0: model.solve_fnopt(net, p, 10), speed=1.5)
+    x = ro.positions
+    assert bool(torch.isfinite(x).all())
+    # bounded: the sheet stays within its size of the handles, edges within 1.5x rest
+    hmid = ro.handles.mean(1)                               # (F+1, 3)
+    assert float((x - hmid[:, None, None]).norm(dim=-1).max()) < 1.6
+    e = (x[:, :, 1:] - x[:, :, :-1]).norm(dim=-1) / sheet.hx
+    assert float(e.max()) < 1.5
+    assert all(math.isfinite(v) for v in ro.loss)
+
+
+def test_simulate_cli_writes_meshes_metrics_and_pictures(tmp_path):
+    from polygeo.cli import main
+
+    out = tmp_path / "sim"
+    rc = main(["simulate", "--res", "8x6", "--frames", "3", "--optimizer", "lbfgs",
+               "--iters", "5", "--handles", "diagonal", "--motion", "rot-b", "--speed", "2",
+               "-o", str(out), "--quiet", "--gif-every", "1"])
+    assert rc in (0, None)
+    m = json.loads((out / "metrics.json").read_text())
+    assert len(m["frames"]) == 3
+    for rec in m["frames"]:
+        assert {"e_cd", "e_3d", "L_cloth", "ms"} <= set(rec)
+        assert rec["e_cd"] >= 0 and np.isfinite(rec["L_cloth"])
+    assert len(list((out / "meshes").glob("*.ply"))) == 4
+    assert (out / "errors.png").stat().st_size > 0
+    from PIL import Image
+
+    assert Image.open(out / "rollout.gif").n_frames == 4
+
+
+def test_reference_rollout_has_zero_error_against_itself(tmp_path):
+    from draping.fnopt import simulate
+
+    s = SimSettings(res=(8, 8), frames=3, optimizer="reference")
+    ro = simulate.run(s)
+    m = simulate.frame_metrics(ro, ro)
+    assert max(m["e_3d"]) == 0.0
+    # e_CD of a mesh with itself is the sampling floor, far below the target 5
+    assert max(m["e_cd"]) < 0.5
+
+
+def test_bad_settings_errors():
+    with pytest.raises(ValueError, match="optimizer"):
+        SimSettings(optimizer="newton")
+    with pytest.raises(ValueError, match="layout"):
+        SimSettings(handles="three")
+    with pytest.raises(ValueError, match="motion"):
+        SimSettings(motion="spin")
+    with pytest.raises(ValueError, match="iters"):
+        SimSettings(iters=0)
+    with pytest.raises(ValueError, match="FNOConfig.width"):
+        model.FNOConfig(width=0)
+    with pytest.raises(FileNotFoundError):
+        model.load_pretrained("/nonexistent/fnopt.pt")
+
+
+def test_viz_gif_and_strip(tmp_path):
+    f = cloth.grid_faces(4, 4).numpy()
+    v = cloth.rest_positions(Sheet(4, 4)).reshape(-1, 3).numpy()
+    imgs = viz.render_frames([v, v + 0.1], f, points=[v[:1], v[:1]])
+    viz.write_gif(imgs, tmp_path / "a.gif")
+    viz.write_strip(imgs, tmp_path / "a.png")
+    from PIL import Image
+
+    assert Image.open(tmp_path / "a.gif").n_frames == 2
+    assert Image.open(tmp_path / "a.png").width == 2 * imgs[0].width
+    with pytest.raises(ValueError):
+        viz.write_gif([], tmp_path / "b.gif")
