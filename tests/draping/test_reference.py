@@ -231,6 +231,12 @@ def test_settings_and_inputs_are_validated():
         R.SolverSettings(max_iter=0)
     with pytest.raises(ValueError, match="collision_eps"):
         R.SolverSettings(collision_eps=-1)
+    with pytest.raises(ValueError, match="max_requery"):
+        R.SolverSettings(max_requery=-1)
+    with pytest.raises(TypeError, match="history"):
+        R.SolverSettings(history=2.5)
+    with pytest.raises(ValueError, match="gravity"):
+        R.SolverSettings(gravity=(0.0, -9.81))
     v, f = grid_sheet(4, 0.3)
     r = P.rest_state(v, f)
     with pytest.raises(ValueError, match="x0"):
