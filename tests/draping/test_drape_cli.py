@@ -234,3 +234,25 @@ def test_pipeline_and_resume_give_identical_outputs(tmp_path, small_scene_parts)
     other = drape.DrapeJob(garment_file=str(path), motion="walk", frames=4)
     with pytest.raises(ValueError, match="other settings"):
         drape.run_drape(other, tmp_path / "cut", quiet=True, pictures=False, body=body)
+
+
+def test_plugins_are_registered():
+    from importlib.metadata import entry_points
+
+    commands = {e.name: e.value for e in entry_points(group="polygeo.commands")}
+    parts = {e.name: e.value for e in entry_points(group="polygeo.demo")}
+    assert commands.get("drape-reference") == "draping.cli:register"
+    assert parts.get("drape") == "draping.cli:demo"
+
+
+@pytest.mark.slow
+def test_demo_part_prints_its_metric_table(capsys, tmp_path):
+    import argparse
+
+    from draping.cli import DEMO_FRAMES, demo
+
+    assert demo(argparse.Namespace(out=str(tmp_path), quiet=True)) == 0
+    out = capsys.readouterr().out
+    assert "eps_c(%)" in out and "mean" in out
+    s = json.loads((tmp_path / "drape" / "metrics.json").read_text())
+    assert s["frames"] == DEMO_FRAMES
