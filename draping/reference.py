@@ -27,10 +27,14 @@ Every accepted step lowers the energy (Armijo line search) until the body is re-
 ``"newton"`` is the default because it was the fastest at equal tolerance in
 ``benchmarks/bm_drape.py --sections solver`` (a 1 m sheet falling onto a 0.3 m sphere, three
 frames of 1/30 s, one thread on a shared 2-core machine under a load of about 12): seconds per
-frame at ``tol = 1e-2`` for 2025 / 5041 / 10000 vertices, newton 0.71 / 1.96 / 5.1, pqn
-1.14 / 2.75 / 23.2 (not converged in 1500 iterations at 10k), lbfgs 7.8 (2025 only); at
-``tol = 1e-3`` newton 8.4 / 11.6 / 20.0 and pqn 7.7 / 20.8 (not converged). Frames where the
-sheet buckles on impact need tens of Newton iterations.
+frame at ``tol = 1e-2`` for 2025 / 5041 / 10000 vertices, newton 0.30 / 0.69 / 2.3, pqn
+1.2 / 5.2 / 13.4, lbfgs 1.1 / 3.2 (10k not run); at ``tol = 1e-3`` (2025 vertices) newton
+4.1, pqn 2.7, lbfgs 1.6. The quasi-Newton minimisers stop at lower energies for a given
+``tol`` (mean distance to a 1e-4 solve at 2025 vertices: pqn 0.06 mm, newton 0.85 mm at
+``tol = 1e-2``), so at 2025 vertices pqn is the most accurate per second beyond the default
+tolerance; from 5041 vertices newton is both faster and closer (0.04 mm at ``1e-3`` in 4.6 s
+against pqn's 0.55 mm at ``1e-2`` in 5.2 s). Frames where the sheet buckles on impact need
+tens of Newton iterations.
 """
 
 from __future__ import annotations
@@ -85,8 +89,9 @@ class SolverSettings:
     tol : float
         Stopping rule: ``|grad E|_2 <= tol |M g|_2`` over the free vertices (dimensionless).
         The default ``1e-2`` (residual force a hundredth of the garment's weight) left the
-        sheet-over-sphere drapes of ``benchmarks/bm_drape.py`` 0.85-0.92 mm (mean, 3.5-3.8 mm
-        max) from solves at ``1e-4``, 4 to 12 times faster than ``1e-3`` (0.06-0.26 mm).
+        newton drapes of the sheet-over-sphere benchmark (``benchmarks/bm_drape.py``)
+        0.85 / 0.91 mm (mean; 3.7 / 3.5 mm max) from solves at ``1e-4`` for 2025 / 5041
+        vertices, 7 to 14 times faster than ``1e-3`` (0.15 / 0.04 mm).
     max_iter : int
         Iteration cap per frame.
     history : int
