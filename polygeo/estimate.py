@@ -56,7 +56,7 @@ from ._jets_numba import factor_normal as _factor
 from ._jets_numba import solve_factored as _solve
 from ._numba_util import finite_rows, njit_pair
 from .checks import as_tensor, check_choice, check_faces, check_int, check_positive, check_shape
-from .neighbors import PointIndex, mesh_k_ring
+from .neighbors import PointIndex, mesh_k_ring, reaches_non_manifold
 from .status import Status
 
 __all__ = [
@@ -995,6 +995,9 @@ def differential_quantities(
     monge_out = None
     if monge:
         monge_out = _monge(extra["coeffs"].double(), extra["frame"].double(), P, out_dtype)
+    if f_np is not None:  # a neighbourhood across a non-manifold edge (a fin) is flagged
+        reach = reaches_non_manifold(P, f_np, n_nb, radius=radius, rings=rings)
+        status = np.where(reach & (status == int(Status.OK)), int(Status.NON_MANIFOLD), status)
     result = DifferentialQuantities(
         points=pts_t,
         status=torch.from_numpy(status),

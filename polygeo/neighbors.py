@@ -40,6 +40,7 @@ __all__ = [
     "knn",
     "radius_neighbors",
     "mesh_k_ring",
+    "reaches_non_manifold",
     "vertex_adjacency",  # re-exported from polygeo.mesh, its home
 ]
 
@@ -663,3 +664,70 @@ def mesh_k_ring(
     hops[row[keep], pos[keep]] = hv[keep]
     mask = index >= 0
     return KRing(_out(index, numpy_in), _out(hops, numpy_in), _out(mask, numpy_in))
+
+
+def reaches_non_manifold(
+    points: Any,
+    faces: Any,
+    n_neighbors: Any = None,
+    *,
+    radius: float | None = None,
+    rings: int | None = None,
+) -> np.ndarray:
+    """Which vertices have a neighbourhood that reaches a non-manifold edge of the mesh.
+
+    The faces around each edge shared by more than two faces (a fin hung on a surface,
+    :func:`polygeo.mesh.non_manifold_edges`) are marked; a vertex is flagged when its
+    neighbourhood holds a vertex of a marked face. Neighbourhoods are the ``rings``-ring,
+    the ball of ``radius`` or, by default, the ``n_neighbors`` nearest points (the point
+    itself included, as counted by :attr:`polygeo.estimate.DifferentialQuantities.n_neighbors`).
+
+    Parameters
+    ----------
+    points : (N, 3) float array or tensor
+        Vertex positions (any unit).
+    faces : (F, 3) int array or tensor
+        Triangles.
+    n_neighbors : (N,) int array or int, optional
+        Neighbourhood size per vertex (default 21: 20 neighbours and the point).
+    radius : float, optional
+        Ball radius (input units) instead of nearest neighbours.
+    rings : int, optional
+        Mesh rings instead of nearest neighbours.
+
+    Returns
+    -------
+    np.ndarray
+        ``(N,)`` bool, True where the neighbourhood reaches a non-manifold edge; all False
+        on a manifold mesh (no search is run then).
+
+    Raises
+    ------
+    ValueError
+        Bad shapes or sizes.
+    TypeError
+        Non-numeric input.
+    """
+    from .mesh import edge_faces
+
+    pts, _, _ = _points_np(points, "points")
+    n = pts.shape[0]
+    f = check_faces(faces, n).cpu().numpy()
+    _, edge_id, count = edge_faces(f)
+    edge_id, count = np.asarray(edge_id), np.asarray(count)
+    if not (count > 2).any():
+        return np.zeros(n, dtype=bool)
+    half = np.flatnonzero((edge_id >= 0) & (count[np.maximum(edge_id, 0)] > 2))
+    bad_faces = np.unique(half // 3)
+    marked = np.zeros(n + 1, dtype=bool)
+    marked[f[bad_faces].ravel()] = True
+    if rings is not None:
+        nb = np.asarray(mesh_k_ring(f, n, rings).index)
+    elif radius is not None:
+        nb = np.asarray(radius_neighbors(pts, radius).index)
+    else:
+        size = np.broadcast_to(np.asarray(21 if n_neighbors is None else n_neighbors), (n,))
+        kmax = max(1, min(int(size.max()), n))
+        nb = np.asarray(knn(pts, kmax).index)
+        nb = np.where(np.arange(kmax)[None, :] < size[:, None], nb, -1)
+    return marked[nb].any(axis=1) | marked[:n]

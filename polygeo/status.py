@@ -32,6 +32,9 @@ class Status(IntEnum):
     ILL_CONDITIONED = 5
     #: The neighbourhood is not a height graph over the fitted frame (folds back).
     NOT_A_GRAPH = 6
+    #: The neighbourhood reaches an edge shared by more than two faces (a non-manifold mesh,
+    #: e.g. a fin hung on a surface): points of separate sheets were fitted as one surface.
+    NON_MANIFOLD = 7
 
 
 def describe(code: int) -> str:

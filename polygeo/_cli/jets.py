@@ -34,8 +34,9 @@ points of each connected piece).
 Status codes: 0 ok; 1 nonfinite input (the point is NaN/inf: its values are NaN); 2 too few
 points (fewer distinct neighbours than jet coefficients); 3 order reduced (degenerate
 neighbourhood, e.g. a single scan line: fitted at a lower order); 4 degenerate (normal from
-PCA only, curvature 0); 5 ill conditioned; 6 not a graph. Values of non-zero statuses other
-than 1 are finite fallbacks: treat them as unreliable.
+PCA only, curvature 0); 5 ill conditioned; 6 not a graph; 7 non manifold (the
+neighbourhood reaches an edge shared by more than two faces, e.g. a fin). Values of non-zero
+statuses other than 1 are finite fallbacks: treat them as unreliable.
 """
 
 

@@ -15,6 +15,7 @@ def test_codes_are_stable_and_distinct():
         "DEGENERATE": 4,
         "ILL_CONDITIONED": 5,
         "NOT_A_GRAPH": 6,
+        "NON_MANIFOLD": 7,
     }
     assert {s.name: int(s) for s in Status} == want
 
