@@ -9,6 +9,8 @@ Sub-modules (imported on first access, so that ``import polygeo`` stays cheap):
 ``covariance``  per-vertex covariance descriptors and the GAPS inextensibility residual
 ``mesh``        edge lengths, areas, normals, adjacency of triangle meshes
 ``io``          reading and writing point clouds and meshes
+``io_las``      LAS/LAZ files, memory-mapped coordinates of large NPY/PLY/LAS files
+``tiling``      jets of clouds larger than memory: tiles with exact halos, resume, Dask
 ``runs``        atomic writes, safe checkpoints, resume by settings fingerprint, logs, progress
 ``partition``   ACVD-like partition of a surface into patches
 ``patches``     PatchSet: oriented n-jet patches (PolyFit)
@@ -36,7 +38,9 @@ _SUBMODULES = (
     "covariance",
     "mesh",
     "io",
+    "io_las",
     "runs",
+    "tiling",
     "partition",
     "patches",
     "proximity",

@@ -47,14 +47,23 @@ def register(sub: argparse._SubParsersAction) -> None:
         description=_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("input", help="point cloud or mesh file (.ply .obj .off .xyz .txt .npy .npz)")
+    p.add_argument(
+        "input",
+        help="point cloud or mesh file (.ply .obj .off .xyz .txt .npy .npz .las .laz), or a "
+        "quoted pattern such as 'scans/*.laz' (then -o is a folder)",
+    )
     p.add_argument(
         "--columns",
         default=None,
         help="names of the columns of a text or .npy cloud, e.g. 'x y z nx ny nz' or "
         "'x,y,z,r,g,b' (must include x, y, z; nx ny nz are normals; others are ignored)",
     )
-    p.add_argument("-o", "--output", required=True, help="output .npz file (written atomically)")
+    p.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        help="output .npz file, or .las/.laz for a LAS/LAZ input (written atomically)",
+    )
     p.add_argument(
         "--k",
         default="20",
@@ -94,17 +103,24 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--orient",
-        choices=["auto", "input", "mesh", "propagate", "none"],
+        choices=["auto", "input", "mesh", "propagate", "none", "up"],
         default="auto",
         help="where the normals' signs come from (default auto: input normals, else mesh, "
-        "else propagation)",
+        "else propagation; up: towards +z, per point, the default of tiled runs)",
     )
     p.add_argument("--ply", default=None, help="also write a binary PLY with the same attributes")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
+    from polygeo._cli.jets_large import add_arguments
+
+    add_arguments(p)  # LAS/LAZ, tiles, Dask, batches
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from polygeo._cli import jets_large
+
+    if jets_large.wants(args):  # LAS/LAZ, tiles, Dask, batches
+        return jets_large.run(args)
     from polygeo.cli import int_or_auto
     from polygeo.estimate import differential_quantities
     from polygeo.io import read_points, write_npz, write_ply

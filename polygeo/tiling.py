@@ -1,0 +1,755 @@
+"""Jets of clouds larger than memory: spatial tiles with halos, resumable, optionally on Dask.
+
+A job beside :mod:`polygeo.estimate` (it calls :func:`polygeo.differential_quantities` on each
+tile). The cloud is cut into a grid of tiles in the ``(x, y)`` plane (LiDAR scans are wide and
+flat; the tiles are columns, so any cloud works). Each tile is processed with a *halo*: the
+points of the neighbouring tiles close enough to belong to the neighbourhood of one of its
+own points. The halo is exact, not a guess:
+
+- ``radius``: the halo is the radius (every neighbour is within it);
+- ``k`` nearest: the k nearest neighbours of each own point are found among the loaded points;
+  where the k-th distance reaches the edge of the loaded box (a closer point could lie
+  outside) the halo grows to that distance and the tile is loaded again, until every own
+  point's k neighbours are provably inside;
+- ``k="auto"``: the same with the largest candidate size, for the own points *and* the
+  ``AUTO_K_SMOOTH`` nearest neighbours whose chosen sizes are pooled with theirs.
+
+So each point sees the same neighbours as in one in-memory call and gets the same numbers (to
+float rounding: the neighbours' summation order may differ). Orientation must then be local
+too: normals are oriented towards a reference direction (``orient="up"``: ``+z``, the usual
+choice for aerial scans), towards input normals (``"input"``), or left as fitted
+(``"none"``); the global propagation of the in-memory default is not available here.
+
+Results go into memory-mapped ``.npy`` files in the input's point order, in a run folder with
+a JSONL log of finished tiles (:class:`polygeo.runs.JsonlLog`): an interrupted run started
+again with the same settings continues at the next unfinished tile. Peak memory is bounded
+by the tile size, chosen from ``memory_limit`` and a measured bytes-per-point model
+(:func:`bytes_per_point`).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .checks import check_choice, check_int, check_positive
+from .runs import JsonlLog, atomic_write_json, fingerprint, progress, read_jsonl
+from .status import Status
+
+__all__ = [
+    "TileSettings",
+    "TilePlan",
+    "TiledResult",
+    "FIELDS",
+    "parse_memory",
+    "bytes_per_point",
+    "plan_tiles",
+    "jets_tiled",
+    "jets_dask",
+    "tile_task",
+    "dask_client",
+]
+
+#: Output fields: name -> (columns or None, dtype).
+FIELDS: dict[str, tuple[int | None, str]] = {
+    "normals": (3, "f8"),
+    "k1": (None, "f8"),
+    "k2": (None, "f8"),
+    "mean_curvature": (None, "f8"),
+    "gaussian_curvature": (None, "f8"),
+    "d1": (3, "f8"),
+    "d2": (3, "f8"),
+    "status": (None, "i1"),
+}
+
+# Measured peak resident memory per processed point of one estimator call (bytes), order 2,
+# uniform weights, this machine: BASE + PER_NEIGHBOR * (k + 1). See bytes_per_point.
+_BPP_BASE = 1200.0
+_BPP_PER_NEIGHBOR = 60.0
+# Python, NumPy, torch and numba loaded: resident memory not counted in the per-point model.
+_FIXED_BYTES = 600 * 2**20
+
+
+@dataclass(frozen=True)
+class TileSettings:
+    """What each tile computes (passed to :func:`polygeo.differential_quantities`).
+
+    Attributes
+    ----------
+    k : int or "auto"
+        Nearest neighbours besides the point (see ``differential_quantities``).
+    radius : float or None
+        Neighbourhood radius (length unit of the input) instead of k nearest.
+    order : int or "auto"
+        Jet order.
+    weights : None or "gaussian"
+        Least-squares weights.
+    interpolate : bool
+        Jets through their point.
+    orient : {"up", "none"}
+        Normals towards ``+z``, or as fitted.
+    k_candidates : tuple of int
+        Sizes tried by ``k="auto"``.
+    """
+
+    k: int | str = 20
+    radius: float | None = None
+    order: int | str = 2
+    weights: str | None = None
+    interpolate: bool = False
+    orient: str = "up"
+    k_candidates: tuple[int, ...] = (12, 24, 48, 96, 192, 384)
+
+    def estimator_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments of ``differential_quantities`` (orientation excepted)."""
+        kw = dict(k=self.k, radius=self.radius, order=self.order, weights=self.weights,
+                  interpolate=self.interpolate)
+        if self.k == "auto":
+            kw["k_candidates"] = tuple(self.k_candidates)
+        return kw
+
+    def neighbours(self) -> int:
+        """Largest neighbour count a point's result depends on (``k`` or the largest size)."""
+        return int(max(self.k_candidates)) if self.k == "auto" else int(self.k)
+
+
+def _validate(settings: TileSettings) -> None:
+    if settings.k != "auto":
+        check_int(settings.k, "k", low=1)
+    if settings.radius is not None:
+        check_positive(settings.radius, "radius")
+    check_choice(settings.orient, "orient", ("up", "none"))
+
+
+def parse_memory(value: Any) -> int:
+    """Bytes of a memory size such as ``"4GB"``, ``"512MiB"``, ``"2e9"`` or ``4_000_000_000``.
+
+    Units: B, kB/KB, MB, GB, TB (powers of 1000) and KiB, MiB, GiB, TiB (powers of 1024).
+
+    Raises
+    ------
+    ValueError
+        Unparsable text or a non-positive size.
+    TypeError
+        Neither a number nor a string.
+    """
+    if isinstance(value, bool) or not isinstance(value, int | float | str):
+        raise TypeError(f"memory_limit: expected a number of bytes or a string like '4GB', "
+                        f"got {type(value).__name__}")
+    if isinstance(value, str):
+        m = re.fullmatch(r"\s*([0-9.eE+]+)\s*([kKMGT]?i?B?)\s*", value)
+        units = {"": 1, "B": 1, "KB": 1e3, "KIB": 2**10, "MB": 1e6, "MIB": 2**20, "GB": 1e9,
+                 "GIB": 2**30, "TB": 1e12, "TIB": 2**40, "K": 1e3, "M": 1e6, "G": 1e9,
+                 "T": 1e12}
+        unit = m.group(2).upper() if m else None
+        if not m or unit not in units:
+            raise ValueError(f"memory_limit: expected a size like '4GB' or '512MiB', "
+                             f"got {value!r}")
+        try:
+            value = float(m.group(1)) * units[unit]
+        except ValueError as exc:
+            raise ValueError(f"memory_limit: expected a size like '4GB', got {value!r}") from exc
+    if not math.isfinite(value) or value <= 0:
+        raise ValueError(f"memory_limit: expected a positive size, got {value!r}")
+    return int(value)
+
+
+def bytes_per_point(settings: TileSettings) -> float:
+    """Modelled peak memory of one estimator call per loaded point (bytes).
+
+    ``1200 + 60 * (k + 1)`` (``k``: the largest neighbour count), measured as the growth
+    of peak RSS of ``differential_quantities`` on 10^5..10^6-point terrains at k = 20 and
+    k = 60 (order 2); higher orders, ``k="auto"`` and a radius holding more points than
+    ``k + 1`` cost more, so the model is scaled by the number of jet coefficients over 6.
+    """
+    k = settings.neighbours()
+    if settings.radius is not None and settings.k == "auto":
+        k = max(k, 64)
+    order = 4 if settings.order == "auto" else int(settings.order)
+    scale = max(1.0, (order + 1) * (order + 2) / 12.0)
+    return (_BPP_BASE + _BPP_PER_NEIGHBOR * (k + 1)) * scale
+
+
+@dataclass(frozen=True)
+class TilePlan:
+    """A grid of tiles over the finite points' ``(x, y)`` bounding box.
+
+    Attributes
+    ----------
+    lo, hi : (2,) float
+        Bounding box of the finite points in x, y (length unit).
+    shape : (2,) int
+        Tiles along x and y.
+    offsets : (T + 1,) int64
+        Tile ``t`` owns ``order[offsets[t]:offsets[t + 1]]`` (``t = ix * ny + iy``).
+    order : (N_finite,) int64 array
+        Indices of the finite points sorted by tile, ascending inside a tile.
+    n_points, n_nonfinite : int
+        Points in the cloud, of which not finite (no tile: status NONFINITE_INPUT).
+    budget : int
+        Largest number of points (own + halo) one tile may load.
+    """
+
+    lo: tuple[float, float]
+    hi: tuple[float, float]
+    shape: tuple[int, int]
+    offsets: np.ndarray
+    order: np.ndarray
+    n_points: int
+    n_nonfinite: int
+    budget: int
+
+    @property
+    def n_tiles(self) -> int:
+        """Number of tiles (empty ones included)."""
+        return int(self.shape[0] * self.shape[1])
+
+    def tile_box(self, t: int) -> tuple[float, float, float, float]:
+        """``(x0, x1, y0, y1)`` of tile ``t``."""
+        ix, iy = divmod(int(t), int(self.shape[1]))
+        wx, wy = self._widths()
+        return (self.lo[0] + ix * wx, self.lo[0] + (ix + 1) * wx,
+                self.lo[1] + iy * wy, self.lo[1] + (iy + 1) * wy)
+
+    def _widths(self) -> tuple[float, float]:
+        wx = (self.hi[0] - self.lo[0]) / self.shape[0] or 1.0
+        wy = (self.hi[1] - self.lo[1]) / self.shape[1] or 1.0
+        return wx, wy
+
+    def members(self, t: int) -> np.ndarray:
+        """Global indices of the points tile ``t`` owns (ascending)."""
+        return np.asarray(self.order[self.offsets[t]:self.offsets[t + 1]])
+
+
+def _tile_keys(xy: np.ndarray, lo, hi, shape) -> np.ndarray:
+    """Tile index of each (finite) row of ``xy`` (points on the upper edge go to the last)."""
+    keys = []
+    for a in range(2):
+        w = (hi[a] - lo[a]) / shape[a] or 1.0
+        i = np.floor((xy[:, a] - lo[a]) / w).astype(np.int64)
+        keys.append(np.clip(i, 0, shape[a] - 1))
+    return keys[0] * shape[1] + keys[1]
+
+
+def plan_tiles(points: Any, *, tile_points: int, budget: int | None = None,
+               tiles: tuple[int, int] | None = None, chunk: int = 4_000_000) -> TilePlan:
+    """Cut a cloud into a grid of tiles of at most about ``tile_points`` own points.
+
+    The grid is square-celled in the finite points' ``(x, y)`` box and refined until no
+    tile owns more than ``tile_points`` points (or a tile is smaller than 1/4096 of the box:
+    dense spots then give bigger tiles). Points are read ``chunk`` rows at a time.
+
+    Parameters
+    ----------
+    points : (N, 3) array-like
+        Coordinates (a NumPy array, memory map or :class:`polygeo.io_las.PointSource`).
+    tile_points : int
+        Target largest number of own points per tile.
+    budget : int, optional
+        Largest number of points one tile may load with its halo (default
+        ``2 * tile_points``).
+    tiles : (int, int), optional
+        A fixed grid (tiles along x, y) instead of the one ``tile_points`` gives.
+
+    Returns
+    -------
+    TilePlan
+    """
+    n = int(points.shape[0])
+    tile_points = check_int(tile_points, "tile_points", low=1)
+    lo = np.array([np.inf, np.inf])
+    hi = -lo
+    n_bad = 0
+    for s in range(0, n, chunk):
+        xyz = np.asarray(points[s:s + chunk], dtype=np.float64)
+        fin = np.isfinite(xyz).all(1)
+        n_bad += int((~fin).sum())
+        if fin.any():
+            lo = np.minimum(lo, xyz[fin, :2].min(0))
+            hi = np.maximum(hi, xyz[fin, :2].max(0))
+    if not np.isfinite(lo).all():
+        lo, hi = np.zeros(2), np.ones(2)
+    # fine histogram, then the coarsest square-ish grid whose tiles hold <= tile_points
+    fine = 256
+    ext = np.maximum(hi - lo, 1e-300)
+    counts = np.zeros((fine, fine), dtype=np.int64)
+    for s in range(0, n, chunk):
+        xyz = np.asarray(points[s:s + chunk], dtype=np.float64)
+        fin = np.isfinite(xyz).all(1)
+        key = _tile_keys(xyz[fin, :2], lo, hi, (fine, fine))
+        counts += np.bincount(key, minlength=fine * fine).reshape(fine, fine)
+    n_fin = n - n_bad
+    aspect = float(ext[0] / ext[1]) if ext[1] > 0 else 1.0
+    t = max(1.0, n_fin / tile_points)
+    while tiles is None:
+        nx = int(min(fine, max(1, round(math.sqrt(t * aspect)))))
+        ny = int(min(fine, max(1, math.ceil(t / nx))))
+        edges_x = np.linspace(0, fine, nx + 1).round().astype(int)
+        edges_y = np.linspace(0, fine, ny + 1).round().astype(int)
+        block = np.add.reduceat(np.add.reduceat(counts, edges_x[:-1], 0), edges_y[:-1], 1)
+        if block.max(initial=0) <= tile_points or (nx >= fine and ny >= fine) or \
+                nx * ny >= 4096:
+            break
+        t *= 1.5
+    if tiles is not None:
+        nx, ny = (check_int(v, "tiles", low=1) for v in tiles)
+    shape = (nx, ny)
+    keys_all = np.empty(n, dtype=np.int64)
+    for s in range(0, n, chunk):
+        xyz = np.asarray(points[s:s + chunk], dtype=np.float64)
+        fin = np.isfinite(xyz).all(1)
+        kk = np.full(len(xyz), -1, dtype=np.int64)
+        kk[fin] = _tile_keys(xyz[fin, :2], lo, hi, shape)
+        keys_all[s:s + chunk] = kk
+    good = keys_all >= 0
+    order = np.flatnonzero(good)
+    order = order[np.argsort(keys_all[good], kind="stable")]
+    offsets = np.zeros(nx * ny + 1, dtype=np.int64)
+    offsets[1:] = np.cumsum(np.bincount(keys_all[good], minlength=nx * ny))
+    return TilePlan((float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])), shape,
+                    offsets, order, n, n_bad, int(budget or 2 * tile_points))
+
+
+def _load_region(points: Any, plan: TilePlan, t: int, h: float) -> tuple[np.ndarray, ...]:
+    """Own and halo points of tile ``t`` for halo width ``h``: (index, xyz, own mask, box)."""
+    x0, x1, y0, y1 = plan.tile_box(t)
+    wx, wy = plan._widths()
+    nx, ny = plan.shape
+    ix, iy = divmod(int(t), int(ny))
+    rx, ry = int(math.ceil(h / wx)), int(math.ceil(h / wy))
+    parts = []
+    for jx in range(max(0, ix - rx), min(nx, ix + rx + 1)):
+        for jy in range(max(0, iy - ry), min(ny, iy + ry + 1)):
+            parts.append(plan.members(jx * ny + jy))
+    idx = np.sort(np.concatenate(parts)) if parts else np.zeros(0, dtype=np.int64)
+    xyz = np.asarray(points[idx], dtype=np.float64).reshape(-1, 3)
+    box = (x0 - h, x1 + h, y0 - h, y1 + h)
+    keep = ((xyz[:, 0] >= box[0]) & (xyz[:, 0] <= box[1]) & (xyz[:, 1] >= box[2])
+            & (xyz[:, 1] <= box[3]))
+    idx, xyz = idx[keep], xyz[keep]
+    kx = _tile_keys(xyz[:, :2], plan.lo, plan.hi, plan.shape)
+    return idx, xyz, kx == t, box
+
+
+def _margins(xyz: np.ndarray, box, plan: TilePlan) -> np.ndarray:
+    """Distance in (x, y) from each point to the nearest edge of ``box`` with points beyond."""
+    m = np.full(len(xyz), np.inf)
+    if box[0] > plan.lo[0]:
+        m = np.minimum(m, xyz[:, 0] - box[0])
+    if box[1] < plan.hi[0]:
+        m = np.minimum(m, box[1] - xyz[:, 0])
+    if box[2] > plan.lo[1]:
+        m = np.minimum(m, xyz[:, 1] - box[2])
+    if box[3] < plan.hi[1]:
+        m = np.minimum(m, box[3] - xyz[:, 1])
+    return m
+
+
+def _covers(box, plan: TilePlan) -> bool:
+    return (box[0] <= plan.lo[0] and box[1] >= plan.hi[0] and box[2] <= plan.lo[1]
+            and box[3] >= plan.hi[1])
+
+
+def _halo_shortfall(xyz: np.ndarray, own: np.ndarray, box, plan: TilePlan,
+                    settings: TileSettings) -> float:
+    """0 when every own point's neighbourhood is inside ``box``, else how much wider it must be."""
+    from .neighbors import knn
+
+    if settings.radius is not None and settings.k != "auto":
+        return 0.0  # the halo is the radius (k only caps the count inside it)
+    if not own.any() or _covers(box, plan):
+        return 0.0  # nothing to do, or every point of the cloud is loaded
+    n_fin = len(xyz)
+    kq = settings.neighbours() + 1
+    queries = np.flatnonzero(own)
+    if settings.k == "auto":
+        from .estimate import AUTO_K_SMOOTH
+
+        first = knn(xyz, min(AUTO_K_SMOOTH + 1, n_fin), queries=xyz[queries]).index
+        queries = np.unique(np.concatenate([queries, first[first >= 0].ravel()]))
+    dist = knn(xyz, kq, queries=xyz[queries]).distance[:, -1]
+    margin = _margins(xyz[queries], box, plan)
+    short = dist - margin
+    bad = ~(short < 0)
+    if not bad.any():
+        return 0.0
+    s = short[bad]
+    return float(np.max(np.where(np.isfinite(s), s, np.inf)))
+
+
+def tile_task(points: Any, plan: TilePlan, t: int, settings: TileSettings,
+              h0: float) -> dict[str, np.ndarray]:
+    """Quantities of the points tile ``t`` owns (the unit of work, in-process or on Dask).
+
+    Returns a dict with ``index`` (global indices, ascending), the :data:`FIELDS` rows and
+    ``halo`` (the final halo width, length unit) and ``loaded`` (points loaded).
+
+    Raises
+    ------
+    MemoryError
+        The tile with the halo its neighbourhoods need holds more than ``plan.budget`` points.
+    """
+    from .estimate import differential_quantities
+
+    h = float(h0)
+    diag = math.hypot(plan.hi[0] - plan.lo[0], plan.hi[1] - plan.lo[1])
+    while True:
+        idx, xyz, own, box = _load_region(points, plan, t, h)
+        if len(idx) > plan.budget:
+            raise MemoryError(
+                f"memory_limit: tile {t} needs {len(idx)} points with its halo (width {h:.4g}) "
+                f"but the limit allows {plan.budget}; raise the memory limit or lower k")
+        short = _halo_shortfall(xyz, own, box, plan, settings)
+        if short == 0.0:
+            break
+        h_all = max(plan.hi[0] - plan.lo[0], plan.hi[1] - plan.lo[1]) * (1 + 1e-9) + 1e-300
+        h = 2 * h if not math.isfinite(short) else h + short * 1.01 + 1e-12 * diag
+        h = min(h, h_all)
+    out = {"index": idx[own], "halo": np.float64(h), "loaded": np.int64(len(idx))}
+    if not own.any():
+        for name, (cols, typ) in FIELDS.items():
+            out[name] = np.zeros((0, cols) if cols else (0,), dtype=typ)
+        return out
+    ref = None
+    if settings.orient == "up":
+        ref = np.zeros_like(xyz)
+        ref[:, 2] = 1.0
+    dq = differential_quantities(
+        xyz, normals=ref, orient="input" if ref is not None else "none", progress=False,
+        **settings.estimator_kwargs(),
+    )
+    for name, (_cols, typ) in FIELDS.items():
+        out[name] = np.asarray(getattr(dq, name))[own].astype(typ)
+    return out
+
+
+@dataclass(frozen=True)
+class TiledResult:
+    """Memory-mapped results of a tiled run (input point order).
+
+    Attributes
+    ----------
+    folder : Path
+        The run folder (``<name>.npy`` per field, ``plan.json``, ``tiles.jsonl``).
+    fields : dict of str to numpy.memmap
+        :data:`FIELDS`, read-only maps.
+    n_tiles, n_resumed : int
+        Tiles in the plan, and tiles found finished by an earlier run.
+    """
+
+    folder: Path
+    fields: dict[str, np.ndarray]
+    n_tiles: int
+    n_resumed: int
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self.fields[name]
+
+
+def _setup_run(points, folder: Path, settings: TileSettings, memory_limit, tile_points,
+               source_id: str, tiles=None):
+    _validate(settings)
+    n = int(points.shape[0])
+    bpp = bytes_per_point(settings)
+    if tile_points is None:
+        limit = parse_memory(memory_limit if memory_limit is not None else "4GB")
+        budget = int((limit - _FIXED_BYTES) // bpp)
+        need = 4 * (settings.neighbours() + 1)
+        if budget < need:
+            raise ValueError(
+                f"memory_limit: {limit} bytes leave room for {max(budget, 0)} points per tile "
+                f"(model: {_FIXED_BYTES / 2**20:.0f} MiB fixed + {bpp:.0f} bytes per point), "
+                f"fewer than one tile's halo needs ({need} points for k={settings.k}); "
+                f"expected at least {int(_FIXED_BYTES + need * bpp)} bytes")
+        tile_points = max(1, budget // 3)
+    else:
+        tile_points = check_int(tile_points, "tile_points", low=1)
+        budget = max(3 * tile_points, 4 * (settings.neighbours() + 1))
+    key = fingerprint({"settings": asdict(settings), "source": source_id, "n": n,
+                       "tile_points": int(tile_points), "budget": int(budget),
+                       "tiles": None if tiles is None else list(tiles)})
+    folder.mkdir(parents=True, exist_ok=True)
+    meta_path = folder / "plan.json"
+    resumed = False
+    if meta_path.exists():
+        import json
+
+        meta = json.loads(meta_path.read_text())
+        resumed = meta.get("fingerprint") == key and (folder / "plan.npz").exists()
+    if resumed:
+        z = np.load(folder / "plan.npz")
+        plan = TilePlan(tuple(meta["lo"]), tuple(meta["hi"]), tuple(meta["shape"]),
+                        z["offsets"], np.load(folder / "order.npy", mmap_mode="r"),
+                        n, int(meta["n_nonfinite"]), int(budget))
+        done = {int(r["tile"]) for r in read_jsonl(folder / "tiles.jsonl")}
+        maps = {f: np.load(folder / f"{f}.npy", mmap_mode="r+") for f in FIELDS}
+        return plan, done, maps
+    for stale in ("tiles.jsonl", "plan.json"):
+        (folder / stale).unlink(missing_ok=True)
+    plan = plan_tiles(points, tile_points=tile_points, budget=budget, tiles=tiles)
+    np.save(folder / "order.npy", plan.order)
+    np.savez(folder / "plan.npz", offsets=plan.offsets)
+    maps = {}
+    for f, (cols, typ) in FIELDS.items():
+        maps[f] = np.lib.format.open_memmap(folder / f"{f}.npy", mode="w+", dtype=typ,
+                                            shape=(n, cols) if cols else (n,))
+    _fill_nonfinite(points, maps)
+    for m in maps.values():
+        m.flush()
+    atomic_write_json(meta_path, {"fingerprint": key, "lo": plan.lo, "hi": plan.hi,
+                                  "shape": plan.shape, "n_nonfinite": plan.n_nonfinite,
+                                  "n_points": n, "settings": asdict(settings),
+                                  "tile_points": int(tile_points), "budget": int(budget)})
+    return plan, set(), maps
+
+
+def _fill_nonfinite(points, maps, chunk: int = 4_000_000) -> None:
+    n = int(points.shape[0])
+    for s in range(0, n, chunk):
+        xyz = np.asarray(points[s:s + chunk], dtype=np.float64)
+        bad = np.flatnonzero(~np.isfinite(xyz).all(1)) + s
+        if bad.size:
+            for f, m in maps.items():
+                m[bad] = Status.NONFINITE_INPUT if f == "status" else np.nan
+
+
+def _initial_halo(plan: TilePlan, settings: TileSettings) -> float:
+    if settings.radius is not None and settings.k != "auto":
+        return float(settings.radius) * (1 + 1e-9)
+    wx, wy = plan._widths()
+    area = max(wx * wy * plan.n_tiles, 1e-300)
+    density = max(plan.n_points - plan.n_nonfinite, 1) / area
+    # the radius of a disc holding the neighbours at the mean density, doubled
+    return 2.0 * math.sqrt((settings.neighbours() + 1) / (math.pi * density))
+
+
+def _store(maps, res) -> None:
+    idx = res["index"]
+    if idx.size:
+        for f in FIELDS:
+            maps[f][idx] = res[f]
+
+
+def _finish(folder, maps, plan, n_resumed) -> TiledResult:
+    for m in maps.values():
+        m.flush()
+    fields = {f: np.load(folder / f"{f}.npy", mmap_mode="r") for f in FIELDS}
+    return TiledResult(folder, fields, plan.n_tiles, n_resumed)
+
+
+def _source_id(points: Any, source: Any) -> str:
+    if source is not None:
+        p = Path(os.fspath(source)).resolve()
+        st = p.stat()
+        return f"{p}:{st.st_size}:{st.st_mtime_ns}"
+    sample = np.asarray(points[: min(len(points), 4096)], dtype=np.float64)
+    return f"array:{points.shape}:{fingerprint(sample.round(12).tolist())}"
+
+
+def jets_tiled(
+    points: Any,
+    folder: str | os.PathLike,
+    settings: TileSettings | None = None,
+    *,
+    memory_limit: Any = "4GB",
+    tile_points: int | None = None,
+    source: str | os.PathLike | None = None,
+    tiles: tuple[int, int] | None = None,
+    quiet: bool | None = False,
+) -> TiledResult:
+    """Per-point jets of a large cloud, tile by tile, resumable (single process).
+
+    Parameters
+    ----------
+    points : (N, 3) array-like
+        Coordinates (length unit L): a NumPy array, a memory map or
+        :func:`polygeo.io_las.open_points`. Non-finite rows get status ``NONFINITE_INPUT``
+        and NaN values, as in memory.
+    folder : str or os.PathLike
+        Run folder: results ``<field>.npy`` (memory maps, input order), ``plan.json``,
+        ``tiles.jsonl`` (finished tiles). Started again with the same settings and input it
+        resumes; other settings start afresh.
+    settings : TileSettings, optional
+        Neighbourhood, order, orientation (default ``TileSettings()``: k = 20, order 2, up).
+    memory_limit : str or int
+        Peak memory to stay under (``"4GB"``, bytes); picks the tile size through
+        :func:`bytes_per_point`. Ignored when ``tile_points`` is given.
+    tile_points : int, optional
+        Own points per tile (overrides the memory model; the halo budget is three times it).
+    source : str or os.PathLike, optional
+        The input file, to recognise it on resume (default: a hash of the first rows).
+    tiles : (int, int), optional
+        A fixed grid of tiles along x and y (default: from the tile size).
+    quiet : bool or None
+        Progress bar over tiles (see :func:`polygeo.runs.progress`).
+
+    Returns
+    -------
+    TiledResult
+        Read-only memory maps of :data:`FIELDS`.
+
+    Raises
+    ------
+    ValueError
+        Bad settings, or a memory limit too small for one tile with its halo.
+    MemoryError
+        A tile whose halo (dense spot, large k) exceeds the budget.
+    """
+    settings = settings or TileSettings()
+    folder = Path(os.fspath(folder))
+    plan, done, maps = _setup_run(points, folder, settings, memory_limit, tile_points,
+                                  _source_id(points, source), tiles)
+    h0 = _initial_halo(plan, settings)
+    todo = [t for t in range(plan.n_tiles) if t not in done]
+    with JsonlLog(folder / "tiles.jsonl") as log:
+        bar = progress(total=plan.n_tiles, desc="tiles", quiet=quiet, initial=len(done))
+        try:
+            for t in todo:
+                res = tile_task(points, plan, t, settings, h0)
+                _store(maps, res)
+                for m in maps.values():
+                    m.flush()
+                log.append({"tile": t, "n": int(res["index"].size),
+                            "halo": float(res["halo"]), "loaded": int(res["loaded"])})
+                bar.update(1)
+        finally:
+            bar.close()
+    return _finish(folder, maps, plan, len(done))
+
+
+def dask_client(dask: Any):
+    """A ``distributed.Client`` from ``"local:N"``, an address or a Client.
+
+    Returns
+    -------
+    (Client, bool)
+        The client and whether the caller owns it (must close it and its cluster).
+
+    Raises
+    ------
+    ConnectionError
+        No scheduler answers at the address (within 5 s).
+    TypeError
+        Neither a string nor a Client.
+    """
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError as exc:  # pragma: no cover - optional extra
+        raise ImportError("--dask needs dask.distributed: pip install 'polygeo[dask]'") from exc
+    if isinstance(dask, Client):
+        return dask, False
+    if not isinstance(dask, str):
+        raise TypeError(f"dask: expected 'local:N', 'tcp://host:port' or a Client, "
+                        f"got {type(dask).__name__}")
+    m = re.fullmatch(r"local(?::(\d+))?", dask)
+    if m:
+        nw = int(m.group(1) or 2)
+        cluster = LocalCluster(n_workers=nw, threads_per_worker=1, processes=True,
+                               dashboard_address=None)
+        return Client(cluster), True
+    try:
+        return Client(dask, timeout="5s"), True
+    except (OSError, TimeoutError) as exc:
+        raise ConnectionError(f"dask: could not reach the scheduler at {dask!r} "
+                              f"({type(exc).__name__}: {exc})") from exc
+
+
+def _remote_tile(source_path, points, plan, t, settings, h0):
+    if points is None:
+        from .io_las import open_points
+
+        points = open_points(source_path)
+    return tile_task(points, plan, t, settings, h0)
+
+
+def jets_dask(
+    points: Any,
+    folder: str | os.PathLike,
+    settings: TileSettings | None = None,
+    *,
+    dask: Any = "local:2",
+    memory_limit: Any = "4GB",
+    tile_points: int | None = None,
+    source: str | os.PathLike | None = None,
+    tiles: tuple[int, int] | None = None,
+    quiet: bool | None = False,
+) -> TiledResult:
+    """:func:`jets_tiled` with the tiles run as Dask tasks; same files, same numbers.
+
+    The client plans the tiles and writes each finished tile into the run folder (so the
+    workers need no shared output folder); workers read their tile's points from ``source``
+    (a path they can open: a shared file system) or, without ``source``, receive the array.
+    At most two tiles per worker are in flight, so client memory stays bounded.
+
+    Parameters
+    ----------
+    dask : str or distributed.Client
+        ``"local:N"`` (a LocalCluster of N single-thread worker processes),
+        ``"tcp://host:port"`` (an existing scheduler) or a Client.
+    points, folder, settings, memory_limit, tile_points, source, tiles, quiet
+        As :func:`jets_tiled` (``memory_limit`` is per worker).
+
+    Returns
+    -------
+    TiledResult
+
+    Raises
+    ------
+    ConnectionError
+        The scheduler cannot be reached (no output is written under the final name).
+    """
+    from distributed import as_completed
+
+    settings = settings or TileSettings()
+    folder = Path(os.fspath(folder))
+    client, own_client = dask_client(dask)
+    try:
+        plan, done, maps = _setup_run(points, folder, settings, memory_limit, tile_points,
+                                      _source_id(points, source), tiles)
+        h0 = _initial_halo(plan, settings)
+        todo = [t for t in range(plan.n_tiles) if t not in done]
+        n_workers = max(1, len(client.scheduler_info().get("workers", {})))
+        plan_f = client.scatter(plan, broadcast=True)
+        pts_f = None if source is not None else client.scatter(np.asarray(points),
+                                                               broadcast=True)
+        src = None if source is None else str(Path(os.fspath(source)).resolve())
+        with JsonlLog(folder / "tiles.jsonl") as log:
+            bar = progress(total=plan.n_tiles, desc="tiles", quiet=quiet, initial=len(done))
+            try:
+                it = iter(todo)
+                pending = as_completed()
+                for t in it:
+                    pending.add(client.submit(_remote_tile, src, pts_f, plan_f, t, settings,
+                                              h0, key=f"polygeo-tile-{folder.name}-{t}"))
+                    if pending.count() >= 2 * n_workers:
+                        break
+                for fut in pending:
+                    res = fut.result()
+                    _store(maps, res)
+                    for m in maps.values():
+                        m.flush()
+                    t = int(fut.key.rsplit("-", 1)[1])
+                    log.append({"tile": t, "n": int(res["index"].size),
+                                "halo": float(res["halo"]), "loaded": int(res["loaded"])})
+                    bar.update(1)
+                    fut.release()
+                    nxt = next(it, None)
+                    if nxt is not None:
+                        pending.add(client.submit(_remote_tile, src, pts_f, plan_f, nxt,
+                                                  settings, h0,
+                                                  key=f"polygeo-tile-{folder.name}-{nxt}"))
+            finally:
+                bar.close()
+        return _finish(folder, maps, plan, len(done))
+    finally:
+        if own_client:
+            cluster = getattr(client, "cluster", None)
+            client.close()
+            if cluster is not None:
+                cluster.close()
