@@ -31,7 +31,7 @@ from typing import Any, NamedTuple
 import torch
 
 from . import jets
-from .checks import as_tensor, check_finite, check_int, check_positive, check_shape
+from .checks import as_tensor, check_finite, check_int, check_mask, check_positive, check_shape
 from .frames import Orientation, axis_angle_to_matrix, pca_frames
 
 __all__ = ["Canonical", "canonicalize", "height_residual", "OptimizeResult", "optimize_rotations"]
@@ -63,10 +63,7 @@ def _points_mask(points: Any, mask: Any, name: str = "points") -> tuple[torch.Te
     if mask is None:
         m = torch.ones(p.shape[:2], dtype=torch.bool)
     else:
-        m = as_tensor(mask, "mask", floating=False)
-        if m.dtype != torch.bool:
-            raise TypeError(f"mask: expected a bool array, got dtype {m.dtype}")
-        check_shape(m, "mask", tuple(p.shape[:2]))
+        m = check_mask(mask, "mask", tuple(p.shape[:2]))
     if bool(m.any()):
         check_finite(p[m], name)
     return p, m

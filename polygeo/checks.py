@@ -34,6 +34,7 @@ __all__ = [
     "check_int",
     "check_choice",
     "check_faces",
+    "check_mask",
     "to_like",
     "is_numpy_like",
 ]
@@ -162,6 +163,37 @@ def check_finite(t: torch.Tensor, name: str) -> None:
     bad = ~torch.isfinite(t)
     if bool(bad.any()):
         raise ValueError(f"{name}: expected finite values, got {int(bad.sum())} NaN/inf entries")
+
+
+def check_mask(mask: ArrayLike, name: str, shape: Sequence[int | str | None]) -> torch.Tensor:
+    """A boolean validity mask as a tensor, checked for dtype and shape.
+
+    Parameters
+    ----------
+    mask : array_like or torch.Tensor
+        Boolean mask (``True`` = valid).
+    name : str
+        Argument name used in the error message.
+    shape : sequence of int, str or None
+        Expected shape, as in :func:`check_shape`.
+
+    Returns
+    -------
+    torch.Tensor
+        The mask as a ``torch.bool`` tensor.
+
+    Raises
+    ------
+    TypeError
+        If the mask is not boolean.
+    ValueError
+        If its shape does not match.
+    """
+    m = as_tensor(mask, name, floating=False)
+    if m.dtype != torch.bool:
+        raise TypeError(f"{name}: expected a bool array, got dtype {m.dtype}")
+    check_shape(m, name, shape)
+    return m
 
 
 def check_positive(value: float, name: str, *, strict: bool = True) -> float:

@@ -26,7 +26,15 @@ from typing import Any
 
 import torch
 
-from .checks import as_tensor, check_choice, check_finite, check_shape, is_numpy_like, to_like
+from .checks import (
+    as_tensor,
+    check_choice,
+    check_finite,
+    check_mask,
+    check_shape,
+    is_numpy_like,
+    to_like,
+)
 
 __all__ = ["vertex_covariance", "singular_values", "inextensibility_residual"]
 
@@ -42,10 +50,7 @@ def _index_mask(index: Any, mask: Any, n: int) -> tuple[torch.Tensor, torch.Tens
     if mask is None:
         m = idx >= 0
     else:
-        m = as_tensor(mask, "mask", floating=False)
-        if m.dtype != torch.bool:
-            raise TypeError(f"mask: expected a bool array, got dtype {m.dtype}")
-        check_shape(m, "mask", tuple(idx.shape))
+        m = check_mask(mask, "mask", tuple(idx.shape))
         m = m & (idx >= 0)
     valid_idx = idx[m]
     if valid_idx.numel() and int(valid_idx.max()) >= n:

@@ -19,7 +19,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from .checks import as_tensor, check_choice, check_int, check_shape
+from .checks import as_tensor, check_choice, check_int, check_mask, check_shape
 
 __all__ = [
     "PCAFrame",
@@ -121,10 +121,7 @@ def pca_frames(points, mask=None, weights=None, center=None, *, reference_normal
     B, K, _ = p.shape
     m = None
     if mask is not None:
-        m = as_tensor(mask, "mask", floating=False)
-        if m.dtype != torch.bool:
-            raise TypeError(f"mask: expected a bool array, got dtype {m.dtype}")
-        check_shape(m, "mask", (B, K))
+        m = check_mask(mask, "mask", (B, K))
     wt = None
     if weights is not None:
         wt = as_tensor(weights, "weights").to(p.dtype)

@@ -40,7 +40,7 @@ import torch
 
 from ._jets_common import COLLINEAR_TOL
 from ._jets_common import exponents_np as _exponents_np
-from .checks import as_tensor, check_choice, check_int, check_positive, check_shape
+from .checks import as_tensor, check_choice, check_int, check_mask, check_positive, check_shape
 from .status import Status
 from .types import ArrayLike
 
@@ -463,10 +463,7 @@ def _prepare_fit_inputs(uv, z, order, weights, mask, scale, max_cond, refine_abo
         out_dtype = torch.float32
     m = None
     if mask is not None:
-        m = as_tensor(mask, "mask", floating=False)
-        if m.dtype != torch.bool:
-            raise TypeError(f"mask: expected a bool array, got dtype {m.dtype}")
-        check_shape(m, "mask", (B, K))
+        m = check_mask(mask, "mask", (B, K))
     w = None
     if weights is not None:
         w = as_tensor(weights, "weights")

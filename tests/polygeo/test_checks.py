@@ -12,6 +12,7 @@ from polygeo.checks import (
     check_faces,
     check_finite,
     check_int,
+    check_mask,
     check_positive,
     check_shape,
     is_numpy_like,
@@ -219,3 +220,23 @@ def test_is_numpy_like_and_to_like():
     out = to_like(t, True)
     assert isinstance(out, np.ndarray) and out.tolist() == [2.0, 2.0]
     assert to_like(t, False) is t
+
+
+# ---------------------------------------------------------------------------- check_mask
+
+
+def test_check_mask_returns_bool_tensor():
+    m = check_mask(np.array([[True, False, True]]), "mask", ("B", 3))
+    assert isinstance(m, torch.Tensor) and m.dtype == torch.bool
+    assert m.tolist() == [[True, False, True]]
+
+
+@pytest.mark.parametrize("bad", [np.array([[1, 0, 1]]), np.array([[1.0, 0.0, 1.0]])])
+def test_check_mask_refuses_non_bool(bad):
+    with pytest.raises(TypeError, match="mask: expected a bool array"):
+        check_mask(bad, "mask", ("B", 3))
+
+
+def test_check_mask_refuses_shape():
+    with pytest.raises(ValueError, match="valid"):
+        check_mask(np.ones((2, 4), bool), "valid", ("B", 3))
