@@ -70,8 +70,8 @@ FIELDS: dict[str, tuple[int | None, str]] = {
 
 # Measured peak resident memory per processed point of one estimator call (bytes), order 2,
 # uniform weights, this machine: BASE + PER_NEIGHBOR * (k + 1). See bytes_per_point.
-_BPP_BASE = 1200.0
-_BPP_PER_NEIGHBOR = 60.0
+_BPP_BASE = 600.0
+_BPP_PER_NEIGHBOR = 30.0
 # Python, NumPy, torch and numba loaded: resident memory not counted in the per-point model.
 _FIXED_BYTES = 600 * 2**20
 
@@ -163,10 +163,12 @@ def parse_memory(value: Any) -> int:
 def bytes_per_point(settings: TileSettings) -> float:
     """Modelled peak memory of one estimator call per loaded point (bytes).
 
-    ``1200 + 60 * (k + 1)`` (``k``: the largest neighbour count), measured as the growth
-    of peak RSS of ``differential_quantities`` on 10^5..10^6-point terrains at k = 20 and
-    k = 60 (order 2); higher orders, ``k="auto"`` and a radius holding more points than
-    ``k + 1`` cost more, so the model is scaled by the number of jet coefficients over 6.
+    ``600 + 30 * (k + 1)`` (``k``: the largest neighbour count). Measured growth of peak
+    RSS of one ``differential_quantities`` call on random 2.5D terrains (order 2, one
+    thread): 594 bytes/point at k = 20 and 999 at k = 60 for 4e5 points (720 and 1670
+    for 2e5), i.e. about 380 + 10 (k + 1); the model about doubles that for the tile's own
+    copies (loaded coordinates, the halo check's k-NN lists, the results). Higher orders
+    cost more: the model is scaled by the number of jet coefficients over 6.
     """
     k = settings.neighbours()
     if settings.radius is not None and settings.k == "auto":
@@ -488,13 +490,16 @@ def _setup_run(points, folder: Path, settings: TileSettings, memory_limit, tile_
                         z["offsets"], np.load(folder / "order.npy", mmap_mode="r"),
                         n, int(meta["n_nonfinite"]), int(budget))
         done = {int(r["tile"]) for r in read_jsonl(folder / "tiles.jsonl")}
-        maps = {f: np.load(folder / f"{f}.npy", mmap_mode="r+") for f in FIELDS}
-        return plan, done, maps
+        return plan, done, {f: None for f in FIELDS}
     for stale in ("tiles.jsonl", "plan.json"):
         (folder / stale).unlink(missing_ok=True)
     plan = plan_tiles(points, tile_points=tile_points, budget=budget, tiles=tiles)
     np.save(folder / "order.npy", plan.order)
     np.savez(folder / "plan.npz", offsets=plan.offsets)
+    # the order (8 bytes per point) read from disk from now on, not held in memory
+    plan = TilePlan(plan.lo, plan.hi, plan.shape, plan.offsets,
+                    np.load(folder / "order.npy", mmap_mode="r"), plan.n_points,
+                    plan.n_nonfinite, plan.budget)
     maps = {}
     for f, (cols, typ) in FIELDS.items():
         maps[f] = np.lib.format.open_memmap(folder / f"{f}.npy", mode="w+", dtype=typ,
@@ -502,6 +507,7 @@ def _setup_run(points, folder: Path, settings: TileSettings, memory_limit, tile_
     _fill_nonfinite(points, maps)
     for m in maps.values():
         m.flush()
+    maps = {f: None for f in FIELDS}
     atomic_write_json(meta_path, {"fingerprint": key, "lo": plan.lo, "hi": plan.hi,
                                   "shape": plan.shape, "n_nonfinite": plan.n_nonfinite,
                                   "n_points": n, "settings": asdict(settings),
@@ -529,16 +535,35 @@ def _initial_halo(plan: TilePlan, settings: TileSettings) -> float:
     return 2.0 * math.sqrt((settings.neighbours() + 1) / (math.pi * density))
 
 
-def _store(maps, res) -> None:
+def _drop_pages(arr: Any) -> None:
+    """Let the kernel drop a memory map's pages from this process's resident set."""
+    arrays = getattr(arr, "columns", None) or (arr,)
+    for a in arrays:
+        mm = getattr(a, "_mmap", None)
+        if mm is not None and hasattr(mm, "madvise"):
+            try:
+                import mmap
+
+                mm.madvise(mmap.MADV_DONTNEED)
+            except (OSError, ValueError, AttributeError):  # pragma: no cover - platform
+                pass
+
+
+def _store(folder: Path, res) -> None:
+    """Write one tile's rows into the result files, mapped for this tile only.
+
+    So the written pages do not stay in the resident set.
+    """
     idx = res["index"]
     if idx.size:
         for f in FIELDS:
-            maps[f][idx] = res[f]
+            m = np.load(folder / f"{f}.npy", mmap_mode="r+")
+            m[idx] = res[f]
+            m.flush()
+            del m
 
 
 def _finish(folder, maps, plan, n_resumed) -> TiledResult:
-    for m in maps.values():
-        m.flush()
     fields = {f: np.load(folder / f"{f}.npy", mmap_mode="r") for f in FIELDS}
     return TiledResult(folder, fields, plan.n_tiles, n_resumed)
 
@@ -612,9 +637,9 @@ def jets_tiled(
         try:
             for t in todo:
                 res = tile_task(points, plan, t, settings, h0)
-                _store(maps, res)
-                for m in maps.values():
-                    m.flush()
+                _store(folder, res)
+                _drop_pages(points)
+                _drop_pages(plan.order)
                 log.append({"tile": t, "n": int(res["index"].size),
                             "halo": float(res["halo"]), "loaded": int(res["loaded"])})
                 bar.update(1)
@@ -731,9 +756,9 @@ def jets_dask(
                         break
                 for fut in pending:
                     res = fut.result()
-                    _store(maps, res)
-                    for m in maps.values():
-                        m.flush()
+                    _store(folder, res)
+                    _drop_pages(points)
+                    _drop_pages(plan.order)
                     t = int(fut.key.rsplit("-", 1)[1])
                     log.append({"tile": t, "n": int(res["index"].size),
                                 "halo": float(res["halo"]), "loaded": int(res["loaded"])})
