@@ -8,6 +8,8 @@ imports another method.
   and the rest geometry of a garment, SI units.
 - :mod:`draping.reference` - the physics reference solver (static and implicit-Euler drapes).
 - :mod:`draping.metrics` - edge, area and collision errors, distances and normal angles.
+- ``draping.drape`` - the reference-drape pipeline (body + motion + garment -> skinning ->
+  per-frame solves -> metrics, resumable run folders) behind ``polygeo drape-reference``.
 - ``draping.body``, ``draping.motion``, ``draping.garments``, ``draping.skinning``,
   ``draping.viz`` - the posable body, motions, garment templates, skinning and pictures.
 - methods: ``draping.gaps``, ``draping.onefit``, ``draping.garnet``, ``draping.fnopt``.

@@ -59,8 +59,12 @@ __all__ = [
     "run_drape",
 ]
 
-#: Solver settings of the pipeline (see :class:`draping.reference.SolverSettings`).
-DEFAULT_SOLVER = reference.SolverSettings()
+#: Solver settings of the pipeline (see :class:`draping.reference.SolverSettings`): the
+#: reference defaults but the body re-queried every 3 iterations instead of 10. Measured on one
+#: dynamic frame of the shipped 5,000-vertex T-shirt on the walk (frame 3, one thread, shared
+#: machine): CPU 1.36 s / 18 iterations against 2.76 s / 34 (every 10) and 5.08 s / 47 (every
+#: 30), the same energy (0.24837 J) and no vertex inside the body.
+DEFAULT_SOLVER = reference.SolverSettings(requery_every=3)
 
 
 @dataclass(frozen=True)
