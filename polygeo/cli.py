@@ -72,8 +72,26 @@ def int_or_auto(
     return number
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """Build the top-level parser with every registered sub-command."""
+def _command_name(argv: list[str]) -> str | None:
+    """The sub-command named in ``argv`` (its first word that is not an option), or None."""
+    for word in argv:
+        if word == "--":
+            return None
+        if not word.startswith("-"):
+            return word
+    return None
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """Build the top-level parser.
+
+    Parameters
+    ----------
+    only : str, optional
+        Load only this sub-command's plug-in (the others are listed by name, unloaded), so
+        that ``polygeo jets --help`` or an argument error does not import every layer.
+        None loads every registered plug-in.
+    """
     parser = argparse.ArgumentParser(
         prog="polygeo",
         description="Deformable surfaces as local polynomial jets: jets, PolyFit, PolySfT.",
@@ -83,7 +101,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"polygeo {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     eps = sorted(entry_points(group="polygeo.commands"), key=lambda e: e.name)
+    names = {ep.name for ep in eps}
     for ep in eps:
+        if only is not None and only in names and ep.name != only:
+            sub.add_parser(ep.name, help=f"(see polygeo {ep.name} --help)")
+            continue
         try:
             register = ep.load()
         except ImportError as exc:  # a broken or partial install: say so, keep the others usable
@@ -93,9 +115,42 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _top_level_help() -> None:
+    """``polygeo`` / ``polygeo --help`` without importing any plug-in: names and modules."""
+    eps = sorted(entry_points(group="polygeo.commands"), key=lambda e: e.name)
+    lines = [
+        "usage: polygeo [-h] [--version] COMMAND ...",
+        "",
+        "Deformable surfaces as local polynomial jets: jets, PolyFit, PolySfT.",
+        "",
+        "commands (polygeo COMMAND --help for each one's options, defaults and units):",
+    ]
+    lines += [f"  {ep.name:<18} {_HELP.get(ep.name, 'plug-in ' + ep.value.split(':')[0])}"
+              for ep in eps]
+    lines += ["", "options:", "  -h, --help         show this help message and exit",
+              "  --version          show program's version number and exit"]
+    print("\n".join(lines))
+
+
+#: One-line help of the known sub-commands, shown by ``polygeo --help`` without loading them.
+_HELP = {
+    "jets": "per-point normals and curvatures of a point cloud or mesh (n-jet fitting)",
+    "polyfit": "partition a mesh or point cloud into patches and fit an oriented n-jet to each",
+    "sft": "shape from template (PolySfT) on an image sequence",
+    "demo": "run the main jobs on embedded defaults and print their accuracy",
+    "bench": "run a benchmark (speed against accuracy; JSON + PNG)",
+    "train-stn": "retrain the shipped STN weights",
+}
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; return the exit status."""
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    command = _command_name(argv)
+    if command is None and (not argv or argv[0] in ("-h", "--help")):
+        _top_level_help()
+        return 0 if argv else 2
+    parser = build_parser(only=command)
     args = parser.parse_args(argv)
     if getattr(args, "func", None) is None:
         parser.print_help()

@@ -34,7 +34,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "(default: all)",
     )
     p.add_argument(
-        "--out", default=None, help="folder for the plug-in parts' outputs (default: temp)"
+        "--out", default="polygeo-demo",
+        help="folder for the plug-in parts' outputs, kept after the run (default: "
+        "./polygeo-demo)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_run)
@@ -55,6 +57,8 @@ def jets_table(n_points: int, k: int) -> list[dict]:
     # warm-up: the first call in a fresh environment compiles the kernels (tens of seconds);
     # keep that out of the points/s column
     # (same size as the table: small inputs take the serial kernels, large ones the parallel)
+    print("warming up (a first run in a new environment compiles the kernels: tens of seconds, "
+          "cached on disk afterwards) ...", file=sys.stderr, flush=True)
     warm = synthetic.torus(n_points, R=1.0, r=0.4, seed=1)
     for order in (1, 2, 3, 4):
         differential_quantities(warm.points, k=k, order=order, normals=warm.normals)
@@ -105,7 +109,11 @@ def _print_table(rows: list[dict], n_points: int, k: int) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
     status = 0
+    if args.out:
+        args.out = str(Path(args.out).resolve())
     if args.only in ("all", "jets"):
         rows = jets_table(args.points, args.k)
         _print_table(rows, args.points, args.k)
@@ -119,4 +127,6 @@ def _run(args: argparse.Namespace) -> int:
                 status = 1
                 continue
             status = max(status, int(part(args) or 0))
+        if args.out:
+            print(f"\npolygeo demo: outputs kept in {args.out}")
     return status
