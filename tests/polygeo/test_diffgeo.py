@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from polygeo import diffgeo, frames, jets, synthetic
+from polygeo.synthetic.analytic import _cylinder_from_params, _torus_from_params
 
 
 def _t(x):
@@ -68,7 +69,7 @@ def test_cylinder_at_random_points(gen):
     xv = torch.stack([zero, zero, torch.ones_like(th)], -1)
     xuu = r * torch.stack([-torch.cos(th), -torch.sin(th), zero], -1)
     g = diffgeo.from_derivatives(xu, xv, xuu, torch.zeros_like(xu), torch.zeros_like(xu))
-    s = synthetic._cylinder_from_params(th.numpy(), z.numpy(), r, None, 0.0, 0)
+    s = _cylinder_from_params(th.numpy(), z.numpy(), r, None, 0.0, 0)
     torch.testing.assert_close(g.normal, _t(s.normals))
     torch.testing.assert_close(g.k1, _t(s.k1))
     torch.testing.assert_close(g.k2, _t(s.k2))
@@ -95,7 +96,7 @@ def test_torus_matches_closed_form_and_flips_with_normal(gen):
     v = 2 * math.pi * torch.rand(60, generator=gen, dtype=torch.float64)
     d = _torus_derivs(R, r, u, v)
     g = diffgeo.from_derivatives(*d)
-    s = synthetic._torus_from_params(u.numpy(), v.numpy(), R, r, None, 0.0, 0)
+    s = _torus_from_params(u.numpy(), v.numpy(), R, r, None, 0.0, 0)
     torch.testing.assert_close(g.normal, _t(s.normals))
     torch.testing.assert_close(g.k1, _t(s.k1))
     torch.testing.assert_close(g.k2, _t(s.k2))
@@ -318,7 +319,7 @@ def _torus_neighbourhood(h, gen_dirs, u0=0.7, v0=2.1, R=1.0, r=0.4, tilt=0.3):
     u, v = u0 + du, v0 + dv
     pts = torch.stack([(R + r * torch.cos(v)) * torch.cos(u), (R + r * torch.cos(v)) *
                        torch.sin(u), r * torch.sin(v)], -1)
-    s = synthetic._torus_from_params(np.array([u0.item()]), np.array([v0.item()]), R, r, None,
+    s = _torus_from_params(np.array([u0.item()]), np.array([v0.item()]), R, r, None,
                                      0.0, 0)
     p0, n0, t0 = _t(s.points[0]), _t(s.normals[0]), _t(s.d1[0])
     Rt = frames.axis_angle_to_matrix(tilt * t0)

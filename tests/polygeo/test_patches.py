@@ -30,7 +30,7 @@ def _rmse(ps):
 
 def _grid_sheet(nx=30, ny=20, hx=1.0, hy=0.6):
     x, y = np.meshgrid(np.linspace(-hx, hx, nx), np.linspace(-hy, hy, ny), indexing="ij")
-    from polygeo.synthetic import _grid_faces
+    from polygeo.synthetic._common import grid_faces as _grid_faces
 
     return x.ravel(), y.ravel(), _grid_faces(nx, ny, False, False).astype(np.int64)
 

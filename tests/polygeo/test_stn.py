@@ -17,7 +17,8 @@ from polygeo.stn import (
     stn_rotations,
 )
 from polygeo.stn_train import CHECKPOINT_FILE, TrainConfig, train_stn
-from polygeo.synthetic import _family_height_grad, _family_params, _grid_faces
+from polygeo.synthetic._common import grid_faces as _grid_faces
+from polygeo.synthetic.families import _family_height_grad, _family_params
 
 # Seeds 10**6 + i are never used by `polygeo train-stn` (batches use (seed, step) with
 # seed 0 and validation (0, 10**9)): these patches are held out.

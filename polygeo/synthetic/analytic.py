@@ -21,13 +21,13 @@ points, returned separately as ``noisy_points`` (the exact quantities refer to `
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from .checks import check_int, check_positive, check_shape
+from ..checks import check_int, check_positive
+from ._common import grid_faces
 
 __all__ = [
     "AnalyticSample",
@@ -148,19 +148,6 @@ def _seed(seed) -> int:
     return check_int(seed, "seed", low=0)
 
 
-def _grid_faces(nu: int, nv: int, wrap_u: bool, wrap_v: bool) -> np.ndarray:
-    """Triangles of an nu x nv vertex grid (index i * nv + j), oriented like d/du x d/dv."""
-    iu = np.arange(nu if wrap_u else nu - 1)
-    jv = np.arange(nv if wrap_v else nv - 1)
-    I, J = np.meshgrid(iu, jv, indexing="ij")
-    I, J = I.ravel(), J.ravel()
-    I1 = (I + 1) % nu
-    J1 = (J + 1) % nv
-    a = I * nv + J
-    b = I1 * nv + J
-    c = I1 * nv + J1
-    d = I * nv + J1
-    return np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)], 0)
 
 
 def _rejection(rng, n, sample, density, dmax) -> np.ndarray:
@@ -422,7 +409,7 @@ def _graph_sample(name, ev, n, extent, seed, grid, noise, faces_grid=False):
         X, Y = np.meshgrid(g, g, indexing="ij")
         x, y = X.ravel(), Y.ravel()
         if faces_grid:
-            faces = _grid_faces(m, m, False, False)
+            faces = grid_faces(m, m, False, False)
     else:
         rng = np.random.default_rng(seed)
         probe = rng.uniform(-extent, extent, (4096, 2))
@@ -599,7 +586,7 @@ def cylinder_mesh(resolution: int = 32, radius: float = 1.0, height: float = 2.0
     nz = max(2, int(round(height / (2 * np.pi * radius / nt))) + 1)
     th, zz = np.meshgrid(np.arange(nt) * 2 * np.pi / nt, np.linspace(-height / 2, height / 2, nz),
                          indexing="ij")
-    faces = _grid_faces(nt, nz, True, False)
+    faces = grid_faces(nt, nz, True, False)
     return _cylinder_from_params(th.ravel(), zz.ravel(), radius, faces, noise, _seed(seed))
 
 
@@ -636,7 +623,7 @@ def torus_mesh(resolution: int = 48, R: float = 1.0, r: float = 0.3, *, noise: f
     nv = max(3, int(round(nu * r / R)))
     u, v = np.meshgrid(np.arange(nu) * 2 * np.pi / nu, np.arange(nv) * 2 * np.pi / nv,
                        indexing="ij")
-    faces = _grid_faces(nu, nv, True, True)
+    faces = grid_faces(nu, nv, True, True)
     return _torus_from_params(u.ravel(), v.ravel(), R, r, faces, noise, _seed(seed))
 
 
@@ -738,462 +725,10 @@ def wavy_sheet_mesh(nu: int = 64, nv: int = 64, extent: float = 1.0, *, noise: f
     x, y = X.ravel(), Y.ravel()
     pts, nrm, k1, k2, d1 = _graph_quantities(x, y, *_wavy_funcs()(x, y))
     return _finish("wavy_sheet", pts, nrm, k1, k2, d1, np.stack([x, y], 1),
-                   _grid_faces(nu, nv, False, False), noise, _seed(seed))
+                   grid_faces(nu, nv, False, False), noise, _seed(seed))
 
 
 # =============================================================================================
 # PolyFit training and test data (engineer P): the four synthetic patch families of the
 # thesis (§5.5.1) and procedural garment-like meshes. Everything below is NumPy, seeded.
 # =============================================================================================
-
-__all__ += [
-    "PATCH_FAMILIES",
-    "FamilyPatches",
-    "family_patches",
-    "family_grid_patches",
-    "draped_sheet_mesh",
-    "skirt_mesh",
-    "body_mesh",
-]
-
-#: The patch families of thesis §5.5.1, in the order their parameters are drawn.
-PATCH_FAMILIES = ("jet", "trig", "gauss", "bessel")
-
-
-@dataclass(frozen=True)
-class FamilyPatches:
-    """Random patches of the §5.5.1 families (see :func:`family_patches`).
-
-    Attributes
-    ----------
-    points : np.ndarray, shape (B, P, 3), float64
-        Sample positions after the random rotation and the noise.
-    normals : np.ndarray, shape (B, P, 3), float64
-        Exact unit normals of the noise-free surface at the samples (rotated with the points;
-        pointing to the side of the rotated +z axis).
-    uv : np.ndarray, shape (B, P, 2), float64
-        Parameters of the samples in the generating frame, in ``[-1, 1]^2``.
-    height : np.ndarray, shape (B, P), float64
-        Noise-free height ``z(u, v)`` in the generating frame.
-    rotation : np.ndarray, shape (B, 3, 3), float64
-        Rotation applied: ``points = (u, v, z) @ rotation.T + noise``.
-    """
-
-    points: np.ndarray
-    normals: np.ndarray
-    uv: np.ndarray
-    height: np.ndarray
-    rotation: np.ndarray
-
-
-def _family_params(
-    rng: np.random.Generator, n: int, families: tuple[str, ...], amplitude: float
-) -> dict:
-    """Draw the parameters of the families (ranges of thesis §5.5.1)."""
-    a = amplitude
-    par: dict = {}
-    if "jet" in families:
-        par["jet"] = rng.uniform(-a, a, size=(n, 15))
-    if "trig" in families:
-        par["trig"] = (rng.uniform(-a, a, n), rng.uniform(np.pi, 2 * np.pi, n))
-    if "gauss" in families:
-        par["gauss"] = (
-            rng.uniform(-a, a, n),
-            rng.uniform(-1.0, 1.0, (n, 2)),
-            rng.uniform(0.5, 1.0, n),
-        )
-    if "bessel" in families:
-        par["bessel"] = (rng.uniform(-a, a, n), rng.uniform(-1.0, 1.0, (n, 2)), np.full(n, 5.0))
-    return par
-
-
-def _family_height_grad(uv: np.ndarray, par: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Sum of the families' heights and its gradient at ``uv`` (B, P, 2)."""
-    from scipy.special import j0, j1
-
-    u, v = uv[..., 0], uv[..., 1]
-    z = np.zeros(u.shape)
-    g = np.zeros(uv.shape)
-    if "jet" in par:
-        c = par["jet"]
-        k = 0
-        for i in range(5):
-            for j in range(i + 1):
-                p, q = i - j, j
-                z += c[:, k, None] * u**p * v**q
-                if p > 0:
-                    g[..., 0] += c[:, k, None] * p * u ** (p - 1) * v**q
-                if q > 0:
-                    g[..., 1] += c[:, k, None] * q * u**p * v ** (q - 1)
-                k += 1
-    if "trig" in par:
-        al, th = par["trig"]
-        r = np.sqrt(u**2 + v**2)
-        z += al[:, None] * np.cos(th[:, None] * r)
-        dr = -al[:, None] * th[:, None] * np.sin(th[:, None] * r)
-        safe = np.where(r > 0, r, 1.0)
-        g += (dr / safe)[..., None] * np.where(r[..., None] > 0, uv, 0.0)
-    if "gauss" in par:
-        al, c0, sg = par["gauss"]
-        d = uv - c0[:, None, :]
-        e = al[:, None] * np.exp(-(d**2).sum(-1) / (2 * sg[:, None] ** 2))
-        z += e
-        g += -(e / sg[:, None] ** 2)[..., None] * d
-    if "bessel" in par:
-        al, c0, kk = par["bessel"]
-        d = uv - c0[:, None, :]
-        r = np.sqrt((d**2).sum(-1))
-        z += al[:, None] * j0(kk[:, None] * r)
-        dr = -al[:, None] * kk[:, None] * j1(kk[:, None] * r)
-        safe = np.where(r > 0, r, 1.0)
-        g += (dr / safe)[..., None] * np.where(r[..., None] > 0, d, 0.0)
-    return z, g
-
-
-def _random_rotations_np(rng: np.random.Generator, n: int, max_angle: float) -> np.ndarray:
-    """Rotations about uniformly random axes by angles uniform in [0, max_angle] (radians)."""
-    axis = rng.normal(size=(n, 3))
-    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
-    ang = rng.uniform(0.0, max_angle, n)
-    kx = np.zeros((n, 3, 3))
-    kx[:, 0, 1], kx[:, 0, 2], kx[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
-    kx = kx - kx.transpose(0, 2, 1)
-    s, c = np.sin(ang)[:, None, None], np.cos(ang)[:, None, None]
-    return np.eye(3) + s * kx + (1 - c) * kx @ kx
-
-
-def _irregular_uv(rng: np.random.Generator, n: int, p: int, irregular: float) -> np.ndarray:
-    """Samples in [-1, 1]^2: uniform, with a share ``irregular`` drawn around a random centre."""
-    uv = rng.uniform(-1.0, 1.0, (n, p, 2))
-    if irregular > 0:
-        share = rng.uniform(0.0, irregular, n)
-        centre = rng.uniform(-0.7, 0.7, (n, 1, 2))
-        spread = rng.uniform(0.15, 0.5, (n, 1, 1))
-        clustered = np.clip(centre + spread * rng.normal(size=(n, p, 2)), -1.0, 1.0)
-        pick = rng.uniform(size=(n, p, 1)) < share[:, None, None]
-        uv = np.where(pick, clustered, uv)
-    return uv
-
-
-def _given_uv(uv, n: int) -> np.ndarray:
-    """The caller's sample parameters as a float64 (n, P, 2) array (a copy)."""
-    a = np.asarray(uv.detach().cpu() if hasattr(uv, "detach") else uv)
-    if a.dtype.kind not in "biuf":
-        raise TypeError(f"uv: expected a real array, got dtype {a.dtype}")
-    a = a.astype(np.float64)
-    if a.ndim == 2:
-        a = np.broadcast_to(a, (n, *a.shape))
-    check_shape(a, "uv", (n, "P", 2))
-    if not np.isfinite(a).all():
-        raise ValueError(f"uv: expected finite values, got {int((~np.isfinite(a)).sum())} NaN/inf")
-    return a.copy()
-
-
-def family_patches(
-    n_patches: int,
-    n_points: int = 128,
-    *,
-    families: tuple[str, ...] = PATCH_FAMILIES,
-    amplitude: float = 0.5,
-    noise: float = 0.0,
-    max_angle: float = np.pi,
-    irregular: float = 0.5,
-    seed: int | np.random.Generator = 0,
-    uv: np.ndarray | None = None,
-) -> FamilyPatches:
-    """Random height-field patches, sums of the four families of thesis §5.5.1.
-
-    The height over ``(u, v)`` in ``[-1, 1]^2`` is the sum of the chosen families:
-
-    * ``"jet"``: a 4-jet, 15 coefficients uniform in ``[-amplitude, amplitude]``;
-    * ``"trig"``: ``a cos(theta sqrt(u^2 + v^2))``, ``theta`` in ``[pi, 2 pi]``;
-    * ``"gauss"``: ``a exp(-|uv - c|^2 / (2 sigma^2))``, ``sigma`` in ``[0.5, 1]``,
-      centre ``c`` uniform in ``[-1, 1]^2``;
-    * ``"bessel"``: ``a J0(k |uv - c|)`` with ``k = 5``;
-
-    each amplitude ``a`` uniform in ``[-amplitude, amplitude]``. Samples are irregular
-    (uniform plus a cluster), the patch is rotated by a random rotation of angle up to
-    ``max_angle`` and Gaussian noise of standard deviation ``noise`` (same units as
-    ``u, v``) is added to the positions.
-
-    Parameters
-    ----------
-    n_patches : int
-        Number of patches B (>= 1).
-    n_points : int
-        Samples per patch P (>= 1).
-    families : tuple of str
-        Non-empty subset of :data:`PATCH_FAMILIES`.
-    amplitude : float
-        Bound of the amplitudes and jet coefficients (thesis: 0.5).
-    noise : float
-        Standard deviation of the positional noise (>= 0).
-    max_angle : float
-        Largest rotation angle in radians (``pi``: uniformly random axis and angle).
-    irregular : float
-        Largest share of clustered samples, in ``[0, 1]``.
-    seed : int or numpy.random.Generator
-        Randomness.
-    uv : array_like, shape (P, 2) or (B, P, 2), optional
-        Sample parameters to use instead of the irregular draw (for instance a grid, to
-        share one triangulation between the patches); ``n_points`` and ``irregular`` are
-        then ignored and the draws of the parameters and rotations are unchanged.
-
-    Returns
-    -------
-    FamilyPatches
-        Points, exact normals, generating parameters and heights, rotations.
-
-    Raises
-    ------
-    ValueError
-        On an empty or unknown family, non-positive counts, negative noise/amplitude or
-        ``uv`` of the wrong shape or not finite.
-    TypeError
-        If a count is not an integer.
-    """
-    n = check_int(n_patches, "n_patches", low=1)
-    p = check_int(n_points, "n_points", low=1)
-    fams = tuple(families)
-    if not fams or any(f not in PATCH_FAMILIES for f in fams):
-        raise ValueError(f"families: expected a non-empty subset of {PATCH_FAMILIES}, got {fams}")
-    amplitude = check_positive(amplitude, "amplitude", strict=False)
-    noise = check_positive(noise, "noise", strict=False)
-    max_angle = check_positive(max_angle, "max_angle", strict=False)
-    irregular = float(irregular)
-    if not 0.0 <= irregular <= 1.0:
-        raise ValueError(f"irregular: expected a value in [0, 1], got {irregular}")
-    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-    par = _family_params(rng, n, fams, amplitude)
-    uv = _irregular_uv(rng, n, p, irregular) if uv is None else _given_uv(uv, n)
-    z, g = _family_height_grad(uv, par)
-    local = np.concatenate([uv, z[..., None]], axis=-1)
-    nrm = np.concatenate([-g, np.ones(z.shape + (1,))], axis=-1)
-    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
-    rot = _random_rotations_np(rng, n, max_angle)
-    pts = np.einsum("bij,bpj->bpi", rot, local)
-    nrm = np.einsum("bij,bpj->bpi", rot, nrm)
-    if noise > 0:
-        pts = pts + noise * rng.normal(size=pts.shape)
-    return FamilyPatches(points=pts, normals=nrm, uv=uv, height=z, rotation=rot)
-
-
-def family_grid_patches(
-    n_patches: int, n_points: int, *, seed: int | np.random.Generator = 0
-) -> tuple[np.ndarray, np.ndarray]:
-    """Family patches (see :func:`family_patches`) sampled on jittered grids, padded.
-
-    Each patch draws a grid size ``m`` in ``[m_max - 4, m_max]``, ``m_max =
-    max(4, floor(sqrt(n_points)))``, samples its height (the sum of the four families with
-    amplitude 0.5) on the ``m x m`` grid of ``[-1, 1]^2`` jittered by up to a quarter of the
-    spacing, and is rotated by a uniformly random rotation. The first ``min(m^2, n_points)``
-    slots hold the points, the rest is zero padding (the training data of the STN).
-
-    Parameters
-    ----------
-    n_patches : int
-        Number of patches ``B`` (>= 1).
-    n_points : int
-        Slots per patch ``P`` (>= 1).
-    seed : int or numpy.random.Generator
-        Randomness; the draws are, in order: family parameters, grid sizes, jitter per
-        patch, rotations.
-
-    Returns
-    -------
-    points : numpy.ndarray, shape (B, P, 3), float64
-        Samples (same units as ``u, v``), zero in the padding.
-    mask : numpy.ndarray, shape (B, P), bool
-        True for the samples, False for the padding.
-
-    Raises
-    ------
-    ValueError, TypeError
-        If a count is not a positive integer.
-    """
-    n = check_int(n_patches, "n_patches", low=1)
-    n_points = check_int(n_points, "n_points", low=1)
-    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-    m_hi = max(4, math.isqrt(n_points))
-    par = _family_params(rng, n, PATCH_FAMILIES, 0.5)
-    ms = rng.integers(max(2, m_hi - 4), m_hi + 1, n)
-    uv = np.zeros((n, n_points, 2))
-    msk = np.zeros((n, n_points), bool)
-    for i, m in enumerate(ms):
-        t = np.linspace(-1.0, 1.0, int(m))
-        g = np.stack(np.meshgrid(t, t, indexing="ij"), -1).reshape(-1, 2)
-        g = g + rng.uniform(-0.25, 0.25, g.shape) * (2.0 / (m - 1))
-        k = min(len(g), n_points)
-        uv[i, :k] = g[:k]
-        msk[i, :k] = True
-    z, _ = _family_height_grad(uv, par)
-    local = np.concatenate([uv, z[..., None]], -1)
-    rot = _random_rotations_np(rng, n, np.pi)
-    pts = np.einsum("bij,bpj->bpi", rot, local)
-    return np.where(msk[..., None], pts, 0.0), msk
-
-
-# ---- garment-like meshes (metres) ----------------------------------------------------------
-
-
-def draped_sheet_mesh(
-    n: int = 100, *, size: float = 1.0, n_folds: int = 4, fold_depth: float = 0.05, seed: int = 0
-) -> tuple[np.ndarray, np.ndarray]:
-    """A square sheet draped over a table edge, with folds growing along the hanging part.
-
-    The sheet (side ``size`` metres) lies flat on ``z = 0`` for ``x < 0``, bends over a
-    rounded edge of radius ``0.1 * size`` and hangs down, with sinusoidal folds across it
-    whose depth grows linearly from the edge to ``fold_depth``; the phases are seeded.
-
-    Parameters
-    ----------
-    n : int
-        Vertices per side (>= 2); ``V = n**2``.
-    size : float
-        Side length in metres.
-    n_folds : int
-        Number of folds across the sheet.
-    fold_depth : float
-        Largest fold amplitude in metres.
-    seed : int
-        Seed of the fold phases and of a small random modulation.
-
-    Returns
-    -------
-    vertices : np.ndarray, shape (V, 3), float64
-    faces : np.ndarray, shape (F, 3), int64
-        Consistently wound triangles, ``F = 2 (n-1)^2``.
-
-    Raises
-    ------
-    ValueError
-        On ``n < 2`` or non-positive sizes.
-    """
-    n = check_int(n, "n", low=2)
-    size = check_positive(size, "size")
-    fold_depth = check_positive(fold_depth, "fold_depth", strict=False)
-    rng = np.random.default_rng(seed)
-    s = np.linspace(0.0, 1.0, n)
-    a, b = np.meshgrid(s, s, indexing="ij")  # a: along the drape, b: across
-    rad = 0.1 * size
-    arc = 0.5 * np.pi * rad
-    flat = 0.4 * size
-    t = a * size  # arclength along the drape
-    x = np.where(t < flat, t - flat, 0.0)
-    z = np.zeros_like(t)
-    on_arc = (t >= flat) & (t < flat + arc)
-    phi = (t - flat) / rad
-    x = np.where(on_arc, rad * np.sin(phi), x)
-    z = np.where(on_arc, rad * (np.cos(phi) - 1.0), z)
-    hang = t >= flat + arc
-    x = np.where(hang, rad, x)
-    z = np.where(hang, -rad - (t - flat - arc), z)
-    grow = np.clip((t - flat) / (size - flat), 0.0, 1.0)
-    phase = rng.uniform(0, 2 * np.pi)
-    freq = n_folds * (1.0 + 0.1 * rng.uniform(-1, 1))
-    fold = fold_depth * grow**1.5 * np.sin(2 * np.pi * freq * b + phase)
-    y = b * size + 0.3 * fold_depth * grow * np.sin(np.pi * freq * b)
-    # folds displace along the outward direction of the draped curve (x for the hanging part)
-    nx = np.where(on_arc, np.sin(phi), np.where(hang, 1.0, 0.0))
-    nz = np.where(on_arc, np.cos(phi), np.where(hang, 0.0, 1.0))
-    verts = np.stack([x + fold * nx, y - 0.5 * size, z + fold * nz], axis=-1).reshape(-1, 3)
-    return verts, _grid_faces(n, n, False, False).astype(np.int64)
-
-
-def skirt_mesh(
-    n_around: int = 160,
-    n_down: int = 80,
-    *,
-    waist: float = 0.16,
-    hem: float = 0.36,
-    length: float = 0.6,
-    n_folds: int = 9,
-    fold_depth: float = 0.03,
-    seed: int = 0,
-) -> tuple[np.ndarray, np.ndarray]:
-    """An open flared tube (a skirt) with vertical folds that deepen towards the hem.
-
-    Parameters
-    ----------
-    n_around, n_down : int
-        Vertices around (>= 3) and along (>= 2) the skirt.
-    waist, hem : float
-        Radii at the top and the bottom in metres.
-    length : float
-        Height in metres (the skirt hangs from ``z = 0`` down to ``z = -length``).
-    n_folds : int
-        Number of folds around.
-    fold_depth : float
-        Fold amplitude at the hem in metres.
-    seed : int
-        Seed of the fold phases and of a small irregularity.
-
-    Returns
-    -------
-    vertices : np.ndarray, shape (n_around * n_down, 3), float64
-    faces : np.ndarray, shape (F, 3), int64
-        A tube open at both ends (two boundary loops).
-
-    Raises
-    ------
-    ValueError
-        On too few vertices or non-positive sizes.
-    """
-    nu = check_int(n_around, "n_around", low=3)
-    nv = check_int(n_down, "n_down", low=2)
-    for val, nm in ((waist, "waist"), (hem, "hem"), (length, "length")):
-        check_positive(val, nm)
-    rng = np.random.default_rng(seed)
-    th = np.linspace(0.0, 2 * np.pi, nu, endpoint=False)
-    t = np.linspace(0.0, 1.0, nv)
-    T, H = np.meshgrid(th, t, indexing="ij")
-    phase = rng.uniform(0, 2 * np.pi)
-    jitter = rng.uniform(-0.3, 0.3, 3)
-    folds = np.sin(n_folds * T + phase + jitter[0] * np.sin(T)) * (1 + jitter[1] * np.cos(2 * T))
-    r = waist + (hem - waist) * H**0.8 + fold_depth * H**1.3 * folds
-    z = -length * H + 0.02 * length * H * np.sin(2 * T + jitter[2])
-    verts = np.stack([r * np.cos(T), r * np.sin(T), z], axis=-1).reshape(-1, 3)
-    return verts, _grid_faces(nu, nv, True, False).astype(np.int64)
-
-
-def body_mesh(subdivisions: int = 5, *, height: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """A smooth closed body-like surface (hips, waist, chest, shoulders, neck, head).
-
-    A unit icosphere ``(x, y, h)`` is mapped to ``(x W(h), y D(h), h height / 2)`` with smooth
-    (monotone cubic) width and depth profiles of a torso with a head: wider left-right than
-    front-back, a narrow neck. Genus 0, closed, outward-wound, smooth.
-
-    Parameters
-    ----------
-    subdivisions : int
-        Icosphere subdivisions (0..7); ``V = 10 * 4**subdivisions + 2``.
-    height : float
-        Height in metres (default 1: torso and head).
-
-    Returns
-    -------
-    vertices : np.ndarray, shape (V, 3), float64
-    faces : np.ndarray, shape (F, 3), int64
-
-    Raises
-    ------
-    ValueError
-        On subdivisions outside ``[0, 7]`` or a non-positive height.
-    """
-    import trimesh
-    from scipy.interpolate import PchipInterpolator
-
-    sub = check_int(subdivisions, "subdivisions", low=0, high=7)
-    height = check_positive(height, "height")
-    ico = trimesh.creation.icosphere(subdivisions=sub)
-    v = np.asarray(ico.vertices, dtype=np.float64)
-    h = v[:, 2]
-    # profiles in metres for a 1 m figure: bottom, hips, waist, chest, shoulders, neck, head, top
-    knots = np.array([-1.0, -0.75, -0.3, 0.1, 0.42, 0.6, 0.8, 1.0])
-    wide = np.array([0.16, 0.19, 0.14, 0.18, 0.21, 0.06, 0.09, 0.07])
-    deep = np.array([0.12, 0.13, 0.10, 0.13, 0.11, 0.06, 0.10, 0.08])
-    s = height / 1.0
-    w = PchipInterpolator(knots, wide)(h) * s
-    d = PchipInterpolator(knots, deep)(h) * s
-    verts = np.stack([v[:, 0] * w, v[:, 1] * d, 0.5 * height * h], axis=-1)
-    return verts, np.asarray(ico.faces, dtype=np.int64)
