@@ -596,7 +596,10 @@ def main(argv=None) -> int:
         "benchmark": "jets",
         "polygeo_version": polygeo.__version__,
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
+                    "processor": platform.processor() or platform.machine(),
                     "python": sys.version.split()[0]},
+        "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "versions": _versions(),
         "quick": bool(args.quick),
         "peers_available": peers,
         "notes": [
@@ -616,10 +619,18 @@ def main(argv=None) -> int:
         ],
         "accuracy": [],
     }
-    # warm-up (numba compilation / cache load)
-    warm = make_surface("torus", 2000, 0.0)
-    run_polygeo(warm.points, warm.faces, 20, 2)
-    numpy_baseline(warm.points, 20, 2)
+    # warm-up (numba compilation / cache load) of every setting timed below, at a serial and a
+    # parallel size, so that no row times a compilation; the warm-up is reported apart
+    t_warm = time.perf_counter()
+    for n_warm in (2000, 6000):
+        warm = make_surface("torus", n_warm, 0.0)
+        for k_w, o_w in [(20, o) for o in sorted(set(orders) | {2})] + [("auto", 2), (20, "auto"),
+                                                                       ("auto", "auto")]:
+            run_polygeo(warm.points, None, k_w, o_w)
+        run_polygeo(warm.points, warm.faces, 20, 2, orient="auto")
+        numpy_baseline(warm.points, 20, 2)
+    record["warmup_s"] = time.perf_counter() - t_warm
+    print(f"warm-up (kernel compilation or cache load): {record['warmup_s']:.1f} s")
 
     sections = set(args.sections.split(","))
     if args.no_robustness:
@@ -646,9 +657,27 @@ def main(argv=None) -> int:
     with open(path, "w") as fh:
         json.dump(record, fh, indent=1, default=_json_default)
     png = out_dir / "bm_jets.png"
-    chart(record, png)
+    measured = dict(record)  # the chart shows this run's sections only (the JSON keeps all)
+    if "accuracy" not in sections:
+        measured["accuracy"] = []
+    if "parsimony" not in sections:
+        measured.pop("parsimony", None)
+    chart(measured, png)
     print(f"wrote {path} and {png}")
     return 0
+
+
+def _versions():
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for name in ("polygeo", "numpy", "scipy", "torch", "numba", "trimesh", "pyvista", "cgal",
+                 "libigl", "open3d", "pymeshlab"):
+        try:
+            out[name] = version(name)
+        except PackageNotFoundError:
+            continue
+    return out
 
 
 def _speed_section(record, ref_size, peers):
@@ -889,14 +918,20 @@ def chart(record, png):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    acc = [a for a in record["accuracy"] if "pts_per_s" in a and a["surface"] == "torus"]
+    acc = [a for a in record.get("accuracy", []) if "pts_per_s" in a and a["surface"] == "torus"]
     size = max((a["n"] for a in acc), default=0)
     acc = [a for a in acc if a["n"] == size]
-    noises = sorted({a["noise"] for a in acc}) or [0.0]
+    noises = sorted({a["noise"] for a in acc})
     pars = record.get("parsimony", {}).get("runs", [])
     p_noises = sorted({p.get("noise", 0.001) for p in pars})
+    if not acc and not pars:  # a partial run: draw only what it measured
+        _speed_chart(record, png, plt)
+        return
     ncol = max(len(noises), len(p_noises), 1)
-    fig, axes = plt.subplots(3, ncol, figsize=(5.4 * ncol, 13), squeeze=False)
+    n_acc = 2 if acc else 0
+    nrows = n_acc + (1 if pars else 0)
+    fig, axes = plt.subplots(nrows, ncol, figsize=(5.4 * ncol, 4.4 * nrows + 0.8),
+                             squeeze=False)
 
     def label(a):
         m = a["method"]
@@ -929,11 +964,11 @@ def chart(record, png):
             ax.set_ylabel("median normal error [deg]" if r_i == 0
                           else "median relative error of H")
             ax.set_title(f"torus {size} vertices, noise {100 * nz:g}% of diagonal", fontsize=9)
-    for c in range(len(noises), ncol):
+    for c in range(len(noises) if acc else ncol, ncol if acc else 0):
         axes[0, c].axis("off")
         axes[1, c].axis("off")
-    for c in range(ncol):
-        ax = axes[2, c]
+    for c in range(ncol if pars else 0):
+        ax = axes[n_acc, c]
         if c >= len(p_noises):
             ax.axis("off")
             continue
@@ -965,6 +1000,28 @@ def chart(record, png):
     fig.legend(list(handles.values()), list(handles.keys()), loc="lower center",
                ncol=max(1, min(5, len(handles))), fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, 0.07, 1, 1))
+    fig.savefig(png, dpi=100)
+    plt.close(fig)
+
+
+def _speed_chart(record, png, plt):
+    """Throughput of each method in the speed section (a run without accuracy sections)."""
+    speed = record.get("speed_reference", {})
+    rows = []
+    for method, rec in speed.items():
+        if isinstance(rec, dict) and "pipeline_pts_per_s" in rec:
+            rows.append((method, rec["pipeline_pts_per_s"]))
+            if "pipeline_with_orientation_pts_per_s" in rec:
+                rows.append((f"{method} (oriented)", rec["pipeline_with_orientation_pts_per_s"]))
+    fig, ax = plt.subplots(figsize=(7, 0.5 * len(rows) + 1.5))
+    ax.barh([r[0] for r in rows], [r[1] for r in rows], color="C0")
+    ax.set_xscale("log")
+    ax.set_xlabel("throughput [points/s]")
+    n = speed.get("n_points", "?")
+    ax.set_title(f"speed: torus, {n} points, k = {speed.get('k')}, order {speed.get('order')}",
+                 fontsize=9)
+    ax.grid(True, which="both", axis="x", alpha=0.3)
+    fig.tight_layout()
     fig.savefig(png, dpi=100)
     plt.close(fig)
 
