@@ -26,7 +26,8 @@ __all__ = ["SimSettings", "OPTIMIZERS", "DEFAULT_LR", "step_function", "run", "e
 #: Optimisers of ``polygeo simulate``.
 OPTIMIZERS = ("fnopt", "gd", "adam", "lbfgs", "reference")
 
-#: Default step sizes (mass metric; chosen by the sweep of ``benchmarks/bm_fnopt.py``).
+#: Default step sizes (mass metric): stable hand-picked values (GD diverges above ~1e-2 on stiff
+#: sheets); ``benchmarks/bm_fnopt.py`` reports their errors.
 DEFAULT_LR = {"gd": 2e-3, "adam": 0.1, "lbfgs": 1.0}
 
 

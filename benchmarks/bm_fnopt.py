@@ -1,0 +1,228 @@
+"""FNOpt benchmark: error against milliseconds per frame, for FNOpt and classical optimisers.
+
+Parts (each writes benchmarks/results/bm_fnopt_<part>.json and a PNG; reference rollouts are
+cached in benchmarks/results/fnopt_refs/):
+
+- ``iters``: e_CD / e_3D against ms per frame for FNOpt N in {3, 5, 8, 10, 15, 20} and
+  GD / Adam / L-BFGS (and DCT-preconditioned descent) over their iteration counts, at 32, 64,
+  100 (Tables 6.6-6.7, Figure 6.10 analogues);
+- ``super``: FNOpt run at 64 against the 32 rollout upsampled bilinearly to 64 (Table 6.4);
+- ``general``: speed factors 1.2 / 1.5 / 2 and the five handle layouts at 32 (Figures 6.6-6.7);
+- ``sweep``: the width/modes sweep (from benchmarks/fnopt_sweep.py's JSON), charted.
+
+All timings are CPU times of one thread on a shared, busy 2-core machine.
+
+    python benchmarks/bm_fnopt.py --part iters --res 64 --frames 60
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from draping import viz
+from draping.fnopt import solvers
+from draping.fnopt.model import load_pretrained, solve_fnopt
+from draping.fnopt.simulate import DEFAULT_LR, SimSettings, frame_metrics, reference_rollout
+
+OUT = Path(__file__).resolve().parent / "results"
+REFS = OUT / "fnopt_refs"
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _step(name: str, n: int, net=None, lr=None):
+    if name == "fnopt":
+        return lambda p, a0: solve_fnopt(net, p, n)
+    if name == "pgd":
+        return lambda p, a0: solvers.solve_pgd(p, n)
+    if name == "lbfgs":
+        return lambda p, a0: solvers.solve_lbfgs(p, n, step=lr or 1.0)
+    lr = lr if lr is not None else DEFAULT_LR[name]
+    return lambda p, a0: solvers.CLASSICAL[name](p, n, lr=lr)
+
+
+def _rollout(s: SimSettings, step):
+    t0 = time.process_time()
+    try:
+        ro = solvers.rollout(s.sheet(), s.material, s.handles, s.motion, s.frames, step,
+                             s.speed)
+    except ValueError as exc:          # diverged
+        return None, str(exc), time.process_time() - t0
+    return ro, None, time.process_time() - t0
+
+
+def _measure(s: SimSettings, step, ref, every: int) -> dict:
+    ro, err, cpu = _rollout(s, step)
+    if ro is None:
+        return {"diverged": err, "cpu_ms_per_frame": 1e3 * cpu / s.frames}
+    m = frame_metrics(ro, ref, every)
+    return {"e_cd": float(np.mean(m["e_cd"])), "e_3d": float(np.mean(m["e_3d"])),
+            "e_cd_last": m["e_cd"][-1], "L_cloth": float(np.mean(ro.loss)),
+            "cpu_ms_per_frame": 1e3 * cpu / s.frames}
+
+
+def part_iters(args, net) -> dict:
+    res = args.res
+    s0 = SimSettings(res=(res, res), handles="corners", motion=args.motion, frames=args.frames,
+                     speed=args.speed)
+    t0 = time.process_time()
+    ref = reference_rollout(s0, REFS)
+    rec = {"res": res, "motion": args.motion, "frames": args.frames, "speed": args.speed,
+           "reference_cpu_s": time.process_time() - t0,
+           "reference_tol_m_s2": solvers.REFERENCE_TOL, "runs": []}
+    plan = [("fnopt", n) for n in (3, 5, 8, 10, 15, 20)] + \
+        [("pgd", n) for n in (10, 30)] + \
+        [("lbfgs", n) for n in (10, 30, 100, 200)] + \
+        [("adam", n) for n in (10, 100)] + [("gd", n) for n in (10, 100)]
+    if args.only:
+        plan = [p for p in plan if p[0] in args.only.split(",")]
+    for name, n in plan:
+        if name == "fnopt" and net is None:
+            continue
+        r = _measure(s0, _step(name, n, net), ref, args.every)
+        r.update(optimizer=name, iters=n)
+        rec["runs"].append(r)
+        print(json.dumps(r), flush=True)
+    return rec
+
+
+def part_super(args, net) -> dict:
+    s32 = SimSettings(res=(32, 32), motion=args.motion, frames=args.frames, speed=args.speed)
+    s64 = SimSettings(res=(64, 64), motion=args.motion, frames=args.frames, speed=args.speed)
+    ref = reference_rollout(s64, REFS)
+    ro32, _, _ = _rollout(s32, _step("fnopt", 10, net))
+    up = torch.nn.functional.interpolate(ro32.positions.permute(0, 3, 1, 2), size=(64, 64),
+                                         mode="bilinear", align_corners=True).permute(0, 2, 3, 1)
+    ro_up = solvers.Rollout(up, ro32.loss, ro32.ms, ro32.handles)
+    m_up = frame_metrics(ro_up, ref, args.every)
+    r64 = _measure(s64, _step("fnopt", 10, net), ref, args.every)
+    return {"motion": args.motion, "frames": args.frames,
+            "fnopt_64": r64, "upsampled_32": {"e_cd": float(np.mean(m_up["e_cd"])),
+                                              "e_3d": float(np.mean(m_up["e_3d"]))}}
+
+
+def part_general(args, net) -> dict:
+    rec = {"res": args.res, "frames": args.frames, "runs": []}
+    cases = [("corners", args.motion, sp) for sp in (1.0, 1.2, 1.5, 2.0)] + \
+        [(lay, args.motion, 1.0) for lay in ("diagonal", "mid-edges", "corner-centre",
+                                              "single")]
+    for layout, motion, speed in cases:
+        s = SimSettings(res=(args.res, args.res), handles=layout, motion=motion,
+                        frames=args.frames, speed=speed)
+        ref = reference_rollout(s, REFS)
+        for name, n in (("fnopt", 10), ("pgd", 10), ("lbfgs", 100)):
+            if name == "fnopt" and net is None:
+                continue
+            r = _measure(s, _step(name, n, net), ref, args.every)
+            r.update(layout=layout, motion=motion, speed=speed, optimizer=name, iters=n)
+            rec["runs"].append(r)
+            print(json.dumps(r), flush=True)
+    return rec
+
+
+def chart_iters(rec: dict, path: Path) -> None:
+    curves, xs = {}, {}
+    for name in ("fnopt", "pgd", "lbfgs", "adam", "gd"):
+        rs = [r for r in rec["runs"] if r["optimizer"] == name and "e_cd" in r]
+        if rs:
+            curves[f"{name} (N={','.join(str(r['iters']) for r in rs)})"] = \
+                [r["e_cd"] for r in rs]
+            xs[list(curves)[-1]] = [r["cpu_ms_per_frame"] for r in rs]
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
+    for k, y in curves.items():
+        ax.plot(xs[k], y, marker="o", label=k)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.axhline(5.0, color="gray", ls="--", lw=0.8)
+    ax.set_xlabel("CPU ms per frame (1 thread, shared machine)")
+    ax.set_ylabel("e_CD x 1e3 vs converged reference")
+    ax.set_title(f"{rec['res']}x{rec['res']}, corners, {rec['motion']}, {rec['frames']} frames")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--part", choices=("iters", "super", "general", "sweep"), default="iters")
+    ap.add_argument("--res", type=int, default=32)
+    ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--motion", default="xy")
+    ap.add_argument("--speed", type=float, default=1.0)
+    ap.add_argument("--every", type=int, default=3, help="metric frame stride")
+    ap.add_argument("--only", default="", help="comma-separated optimisers (iters part)")
+    ap.add_argument("--weights", default=None)
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    OUT.mkdir(parents=True, exist_ok=True)
+    net = None
+    try:
+        net = load_pretrained(args.weights)
+    except FileNotFoundError:
+        print("no FNOpt weights: classical optimisers only")
+    if args.part == "sweep":
+        rec = json.loads((OUT / "fnopt_sweep.json").read_text())
+        curves = {f"w{r['width']} m{r['modes']} ({r['parameters'] // 1000}k)":
+                  [h["val_subopt"] for h in r["history"]] for r in rec["runs"]}
+        xs = {k: [h["step"] for h in r["history"]] for k, r in zip(curves, rec["runs"])}
+        curves["DCT-preconditioned descent (no FNO)"] = [rec["pgd_baseline_subopt"]] * 2
+        xs["DCT-preconditioned descent (no FNO)"] = [0, rec["steps"]]
+        viz.plot_curves(curves, OUT / "bm_fnopt_sweep.png", x=xs, xlabel="training step",
+                        ylabel="validation sub-optimality (N=10)", logy=True, markers=True,
+                        title="FNOpt width/modes sweep (32x32)")
+        return
+    rec = {"part": args.part, "args": vars(args), "torch": torch.__version__,
+           "note": "CPU times, 1 thread, shared busy 2-core machine"}
+    rec.update({"iters": part_iters, "super": part_super, "general": part_general}[
+        args.part](args, net))
+    tag = f"{args.part}_{args.res}" if args.part != "super" else "super"
+    path = OUT / f"bm_fnopt_{tag}.json"
+    if args.part == "iters" and path.is_file():      # merge with the runs of other invocations
+        old = json.loads(path.read_text())
+        if (old.get("frames"), old.get("motion"), old.get("speed")) == (
+                rec["frames"], rec["motion"], rec["speed"]):
+            key = {(r["optimizer"], r["iters"]) for r in rec["runs"]}
+            rec["runs"] = [r for r in old["runs"] if (r["optimizer"], r["iters"]) not in key] \
+                + rec["runs"]
+            rec["runs"].sort(key=lambda r: (r["optimizer"], r["iters"]))
+    path.write_text(json.dumps(rec, indent=1))
+    if args.part == "iters":
+        chart_iters(rec, OUT / f"bm_fnopt_{tag}.png")
+    elif args.part == "general":
+        rs = [r for r in rec["runs"] if "e_cd" in r]
+        names = sorted({r["optimizer"] for r in rs})
+        labels = [f"{r['layout']} x{r['speed']}" for r in rs if r["optimizer"] == names[0]]
+        curves = {n: [r["e_cd"] for r in rs if r["optimizer"] == n] for n in names}
+        plt = _plt()
+        fig, ax = plt.subplots(figsize=(7, 4), dpi=100)
+        w = 0.8 / max(len(names), 1)
+        for i, n in enumerate(names):
+            ax.bar(np.arange(len(curves[n])) + i * w, curves[n], w, label=n)
+        ax.set_xticks(np.arange(len(labels)) + 0.4 - w / 2)
+        ax.set_xticklabels(labels, rotation=30, fontsize=7)
+        ax.set_ylabel("e_CD x 1e3")
+        ax.set_yscale("log")
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(OUT / f"bm_fnopt_{tag}.png")
+        plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()
