@@ -1,6 +1,6 @@
 """Rollouts with any inner optimiser, their metrics against the converged reference, files.
 
-Metrics per frame: ``e_CD`` (polygeo's public Chamfer distance with 10 000 area-uniform
+Metrics per frame: ``e_CD`` (``polygeo.proximity.chamfer_distance`` with 10 000 area-uniform
 samples per surface, both meshes normalised by the reference's unit sphere, times 1e3),
 ``e_3D`` (``||X - X_ref||_F / ||X_ref - mean(X_ref)||_F``, a relative vertex error that does not
 depend on where the origin is), ``L_cloth`` (J) and milliseconds per frame of the optimiser.
@@ -125,7 +125,7 @@ def reference_rollout(settings: SimSettings, cache_dir: str | Path | None = None
 def e_cd(x: torch.Tensor, x_ref: torch.Tensor, faces: np.ndarray, faces_ref: np.ndarray,
          seed: int = 0) -> float:
     """Chamfer distance x 1e3 (10k samples; unit sphere of the reference) of two meshes."""
-    from polygeo.patches import chamfer_distance
+    from polygeo.proximity import chamfer_distance
 
     return 1e3 * float(chamfer_distance(
         np.asarray(x_ref, dtype=np.float64).reshape(-1, 3), faces_ref,
