@@ -337,6 +337,17 @@ def _check_in_view(verts: np.ndarray, K: np.ndarray, width: int, height: int,
             f"y {uv[:, 1].min():.0f} .. {uv[:, 1].max():.0f})")
 
 
+def _check_image_sizes(paths: list[Path], what: str, width: int, height: int) -> None:
+    """Raise ``ValueError`` naming the first image whose size is not ``width x height``."""
+    for path in paths:
+        size = _image_size(path)
+        if size != (width, height):
+            raise ValueError(
+                f"{path}: {what} size {size[0]}x{size[1]} differs from camera.json "
+                f"{width}x{height}"
+            )
+
+
 def _numbered(folder: Path, pattern: re.Pattern, what: str, ext: str) -> list[Path]:
     """The files of ``folder`` named by a frame index, in index order.
 
@@ -474,24 +485,14 @@ def load_sequence(path: str | os.PathLike) -> Sequence:
     frames = _numbered(fdir, _FRAME_RE, "frame", "png")
     if not frames:
         raise ValueError(f"{fdir}: no frames")
-    for f in frames:
-        size = _image_size(f)
-        if size != (width, height):
-            raise ValueError(
-                f"{f}: image size {size[0]}x{size[1]} differs from camera.json {width}x{height}"
-            )
+    _check_image_sizes(frames, "image", width, height)
     masks: list[Path] = []
     mdir = root / "masks"
     if mdir.is_dir():
         masks = _numbered(mdir, _MASK_RE, "mask", "png")
         if len(masks) != len(frames):
             raise ValueError(f"{mdir}: {len(masks)} masks for {len(frames)} frames")
-        for m in masks:
-            size = _image_size(m)
-            if size != (width, height):
-                raise ValueError(
-                    f"{m}: mask size {size[0]}x{size[1]} differs from camera.json {width}x{height}"
-                )
+        _check_image_sizes(masks, "mask", width, height)
     gts: list[Path] = []
     gdir = root / "gt"
     if gdir.is_dir():
