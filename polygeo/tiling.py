@@ -708,8 +708,10 @@ def jets_dask(
     """:func:`jets_tiled` with the tiles run as Dask tasks; same files, same numbers.
 
     The client plans the tiles and writes each finished tile into the run folder (so the
-    workers need no shared output folder); workers read their tile's points from ``source``
-    (a path they can open: a shared file system) or, without ``source``, receive the array.
+    workers need no shared output folder); workers read their tile's points from the file
+    behind ``points`` when it is a memory map (the decompressed LAZ cache of
+    :func:`polygeo.io_las.open_points`), else from ``source`` (paths they can open: a shared
+    file system), else they receive the array.
     At most two tiles per worker are in flight, so client memory stays bounded.
 
     Parameters
@@ -741,9 +743,13 @@ def jets_dask(
         todo = [t for t in range(plan.n_tiles) if t not in done]
         n_workers = max(1, len(client.scheduler_info().get("workers", {})))
         plan_f = client.scatter(plan, broadcast=True)
-        pts_f = None if source is not None else client.scatter(np.asarray(points),
-                                                               broadcast=True)
-        src = None if source is None else str(Path(os.fspath(source)).resolve())
+        # workers open a file themselves: the memory-mapped .npy behind ``points`` (e.g. the
+        # decompressed LAZ cache) or ``source``; only without either is the array sent
+        src = getattr(points, "filename", None) if isinstance(points, np.memmap) else None
+        if src is None and source is not None:
+            src = str(Path(os.fspath(source)).resolve())
+        pts_f = None if src is not None else client.scatter(np.asarray(points),
+                                                            broadcast=True)
         with JsonlLog(folder / "tiles.jsonl") as log:
             bar = progress(total=plan.n_tiles, desc="tiles", quiet=quiet, initial=len(done))
             try:

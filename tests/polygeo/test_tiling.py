@@ -172,7 +172,9 @@ def test_local_cluster_equals_single_process(tmp_path):
     P = _cloud("borders")
     st = TileSettings(k=K)
     one = jets_tiled(P, tmp_path / "one", st, tile_points=400, tiles=(4, 4), quiet=True)
-    two = tiling.jets_dask(P, tmp_path / "two", st, dask="local:2", tile_points=400,
+    np.save(tmp_path / "P.npy", P)
+    mm = np.load(tmp_path / "P.npy", mmap_mode="r")  # workers open the file themselves
+    two = tiling.jets_dask(mm, tmp_path / "two", st, dask="local:2", tile_points=400,
                            tiles=(4, 4), quiet=True)
     for name in FIELDS:
         np.testing.assert_array_equal(np.asarray(two[name]), np.asarray(one[name]))
