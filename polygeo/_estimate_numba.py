@@ -1,0 +1,343 @@
+"""Fused compiled kernels of :func:`polygeo.estimate.differential_quantities`.
+
+The per-point pieces live with their concepts: PCA height frames in
+:mod:`polygeo._frames_numba`, the jet fit in :mod:`polygeo._jets_numba`, the geometry at the
+jet's origin in :mod:`polygeo._diffgeo_numba`. The kernels here run them fused, item by item,
+in one parallel loop whose work arrays stay in cache:
+
+* :func:`frames_fit_quantities` — the stages frames -> fit -> quantities of the common case
+  (one neighbourhood size per point, one order), results straight into the output arrays;
+* :func:`auto_k_counts` — ``k="auto"``: per point, the neighbourhood size chosen by the
+  intersection of confidence intervals over nested neighbourhoods of one sorted k-NN list.
+
+Their arguments come grouped in three small records (plain named tuples of arrays and
+scalars, which numba passes at no cost): :class:`Hoods` (the neighbourhoods of a chunk of
+query points), :class:`JetSettings` (what the fit needs) and :class:`Quantities` (the output
+arrays, one row per point of the cloud).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import namedtuple
+
+import numba as nb
+import numpy as np
+
+from ._diffgeo_numba import origin_geometry
+from ._frames_numba import height_frame
+from ._jets_numba import accumulate_sample, factor_normal, fit_item, fit_scratch, solve_factored
+from ._numba_util import njit_pair
+
+__all__ = [
+    "Hoods",
+    "JetSettings",
+    "Quantities",
+    "PARALLEL_MIN",
+    "frames_fit_quantities",
+    "auto_k_counts",
+]
+
+#: Neighbourhoods of a chunk of ``Q`` query points. ``points (N, 3)`` float64; ``source (Q,)``
+#: row of ``points`` each query is centred on (its representative among exact duplicates);
+#: ``row (Q,)`` output row of each query; ``nbr, dist (Q, K)`` neighbour indices (nearest
+#: first, -1 padding) and distances (length unit); ``kuse (Q,)`` rows of ``nbr`` used per
+#: query.
+Hoods = namedtuple("Hoods", "points source row nbr dist kuse")
+
+#: Settings of the jet fit: ``order`` (1..4), ``gaussian`` (Gaussian distance weights),
+#: ``max_cond`` (largest accepted condition number), ``interpolate`` (jet through the query
+#: point), ``ep, eq (M,)`` int64 exponents of ``u`` and ``v`` per coefficient.
+JetSettings = namedtuple("JetSettings", "order gaussian max_cond interpolate ep eq")
+
+#: Output arrays, one row per point of the cloud: ``normals, d1, d2 (N, 3)``, ``curvatures
+#: (N, 4)`` (k1, k2, H, K), ``status, fitted_order, n_neighbors (N,)`` int64, ``residual
+#: (N,)``, ``frame (N, 3, 3)``, ``coeffs (N, M)``.
+Quantities = namedtuple(
+    "Quantities",
+    "normals d1 d2 curvatures status fitted_order n_neighbors residual frame coeffs",
+)
+
+#: Items per work unit of the parallel loops.
+_CHUNK = 256
+#: Queries from which the fused kernel runs on numba's threads (the auto-k kernel, 8x more
+#: work per point, from ``PARALLEL_MIN // 8``).
+PARALLEL_MIN = 4096
+
+
+# ----------------------------------------------------------------------------- frames -> fit
+
+
+@nb.njit(cache=True, inline="always")
+def _gaussian_weights(uv, z, valid, radius, w):
+    """``w[0, j] = exp(-d_j^2 / radius^2)`` for the valid rows of item 0 (else 0)."""
+    h2 = max(radius * radius, 1e-300)
+    for j in range(uv.shape[1]):
+        d2_ = uv[0, j, 0] ** 2 + uv[0, j, 1] ** 2 + z[0, j] ** 2
+        w[0, j] = math.exp(-d2_ / h2) if valid[0, j] else 0.0
+
+
+@nb.njit(cache=True, inline="always")
+def _store(out, o, cf, Rl, status, fitted_order, count, residual):
+    """Geometry at the origin of jet ``cf[0]`` in frame ``Rl[0]``, and the fit, into row ``o``."""
+    origin_geometry(cf, 0, Rl, 0, out.normals, out.d1, out.d2, out.curvatures, o)
+    for j in range(cf.shape[1]):
+        out.coeffs[o, j] = cf[0, j]
+    for r in range(3):
+        for c in range(3):
+            out.frame[o, r, c] = Rl[0, r, c]
+    out.status[o] = status
+    out.fitted_order[o] = fitted_order
+    out.n_neighbors[o] = count
+    out.residual[o] = residual
+
+
+def _frames_fit_quantities_py(hood, jet, out):
+    """Frames -> fit -> quantities of each query ``i``, results into row ``hood.row[i]``."""
+    P, source, row, nbr, dist, kuse = hood
+    order, gaussian, max_cond, interp, ep, eq = jet
+    Q, K = nbr.shape
+    M = out.coeffs.shape[1]
+    nchunks = (Q + _CHUNK - 1) // _CHUNK
+    for c in nb.prange(nchunks):
+        # one item's work arrays, reused (row 0) so that they stay in L1
+        uv = np.empty((1, K, 2))
+        z = np.empty((1, K))
+        valid = np.empty((1, K), dtype=np.bool_)
+        w = np.ones((1, K))
+        Rl = np.empty((1, 3, 3))
+        lam = np.empty((1, 3))
+        cf = np.empty((1, M))
+        a = np.empty((3, 3))
+        v = np.empty((3, 3))
+        scratch = fit_scratch(order, K)
+        for i in range(c * _CHUNK, min(Q, (c + 1) * _CHUNK)):
+            # frame: PCA of the neighbourhood, height coordinates (u, v, z)
+            _, rad = height_frame(P, source[i], nbr[i], dist[i], kuse[i], uv, z, valid, 0, Rl, 0,
+                                  lam, a, v)
+            if gaussian:
+                _gaussian_weights(uv, z, valid, rad, w)
+            # fit: the jet of the requested order (lower orders as fallback)
+            fo, st, _, rs, _, cnt = fit_item(uv, z, w, gaussian, valid, True, 0, 0.0, order,
+                                             True, max_cond, 100.0, interp, ep, eq, scratch,
+                                             cf, 0)
+            # quantities at the jet's origin, in world axes
+            _store(out, row[i], cf, Rl, st, fo, cnt, rs)
+
+
+frames_fit_quantities_par, frames_fit_quantities_ser = njit_pair(_frames_fit_quantities_py)
+
+
+def frames_fit_quantities(hood: Hoods, jet: JetSettings, out: Quantities,
+                          parallel_min: int = PARALLEL_MIN) -> None:
+    """Run the fused frames -> fit -> quantities kernel (parallel from ``parallel_min``)."""
+    par = hood.nbr.shape[0] >= parallel_min
+    (frames_fit_quantities_par if par else frames_fit_quantities_ser)(hood, jet, out)
+
+
+# ----------------------------------------------------------------------------- k = "auto"
+
+
+@nb.njit(cache=True, inline="always")
+def _g_column(L, Ld, D, m, a, g, y, col):
+    """Column ``a`` of ``G = S^-1`` (S the moment matrix) from ``N = D S D = L L^T``."""
+    for j in range(m):
+        g[j] = 0.0
+    g[a] = D[a]
+    solve_factored(L, Ld, m, g, y)
+    for j in range(m):
+        col[j] = D[j] * y[j]
+
+
+@nb.njit(cache=True, inline="always")
+def _size_statistics(uv, z, valid, sizes, order, max_cond, interp, ep, eq, ws, stats):
+    """Fits over the nested neighbourhoods (first ``sizes[s]`` rows) of item 0.
+
+    Moments accumulated along the sorted rows so that every size costs one small solve. Per
+    well-posed size ``t`` (in ``stats``): residual sum of squares, degrees of freedom, count,
+    ``a10, a01, H`` and their variances over ``sigma^2``, and the coefficients. Returns the
+    number of sizes stored.
+    """
+    mom, rhs, pu, pv, N, L, Linv, D, Ld, x, g, y, col = ws
+    st_rss, st_dof, st_cnt, st_val, st_g, st_cf = stats
+    K = uv.shape[1]
+    M = ep.shape[0]
+    S = sizes.shape[0]
+    n2 = 2 * order
+    hmax = 0.0
+    for j in range(K):
+        if valid[0, j]:
+            hmax = max(hmax, uv[0, j, 0] ** 2 + uv[0, j, 1] ** 2)
+    h = math.sqrt(hmax) if hmax > 0.0 else 1.0
+    ih = 1.0 / h
+    for p in range(n2 + 1):
+        for q in range(n2 + 1):
+            mom[p, q] = 0.0
+    for j in range(M):
+        rhs[j] = 0.0
+    zz = 0.0
+    cnt = 0
+    si = 0
+    ns = 0  # well-posed sizes stored
+    for j in range(K):
+        if valid[0, j]:
+            accumulate_sample(uv[0, j, 0] * ih, uv[0, j, 1] * ih, 1.0, z[0, j], mom, rhs,
+                              pu, pv, n2, M, ep, eq)
+            zz += z[0, j] ** 2
+            cnt += 1
+        if j + 1 < sizes[si] and j < K - 1:
+            continue
+        si += 1
+        cc = math.inf
+        if cnt >= M:
+            cc = factor_normal(mom, ep, eq, M, N, D, L, Ld, Linv)
+        if not cc <= max_cond:
+            if ns > 0 or si >= S:
+                break  # a larger neighbourhood turned degenerate: keep the smaller
+            continue
+        for m in range(M):
+            g[m] = D[m] * rhs[m]
+        solve_factored(L, Ld, M, g, y)
+        for m in range(M):
+            x[m] = D[m] * y[m]
+        if interp:
+            _g_column(L, Ld, D, M, 0, g, y, col)
+            f = x[0] / col[0]
+            for m in range(M):
+                x[m] -= col[m] * f
+            x[0] = 0.0
+        # residual sum of squares from the moments
+        xsx = 0.0
+        xr = 0.0
+        for m in range(M):
+            xr += x[m] * rhs[m]
+            for m2 in range(M):
+                xsx += x[m] * x[m2] * mom[ep[m] + ep[m2], eq[m] + eq[m2]]
+        st_rss[ns] = max(zz - 2.0 * xr + xsx, 0.0)
+        st_dof[ns] = cnt - M + (1 if interp else 0)
+        st_cnt[ns] = cnt
+        # slopes and H (to first order a20 + a02) and their variances / sigma^2
+        _g_column(L, Ld, D, M, 1, g, y, col)
+        st_g[ns, 0] = max(col[1], 0.0) * ih * ih
+        _g_column(L, Ld, D, M, 2, g, y, col)
+        st_g[ns, 1] = max(col[2], 0.0) * ih * ih
+        st_val[ns, 0] = x[1] * ih
+        st_val[ns, 1] = x[2] * ih
+        st_val[ns, 2] = 0.0
+        st_g[ns, 2] = 0.0
+        if M >= 6:
+            _g_column(L, Ld, D, M, 3, g, y, col)
+            g33 = col[3]
+            g35 = col[5]
+            _g_column(L, Ld, D, M, 5, g, y, col)
+            st_g[ns, 2] = max(g33 + col[5] + 2.0 * g35, 0.0) * ih ** 4
+            w_ = math.sqrt(1.0 + st_val[ns, 0] ** 2 + st_val[ns, 1] ** 2)
+            st_val[ns, 2] = (x[3] + x[5]) * ih * ih / w_
+        pu[0] = 1.0
+        for p in range(1, order + 1):
+            pu[p] = pu[p - 1] * ih
+        for m in range(M):
+            st_cf[ns, m] = x[m] * pu[ep[m] + eq[m]]
+        ns += 1
+        if si >= S:
+            break
+    return ns
+
+
+@nb.njit(cache=True, inline="always")
+def _ici_choice(ns, stats, gamma, min_dof):
+    """Index of the largest stored size whose intervals meet those of all smaller ones.
+
+    The noise level at step ``t`` is the mean residual variance of the fits so far that have at
+    least ``min_dof`` degrees of freedom (of the first well-posed one before them); -1 when no
+    size was stored.
+    """
+    st_rss, st_dof, _, st_val, st_g, _ = stats
+    chosen = -1
+    lo_u = lo_v = lo_h = -math.inf
+    hi_u = hi_v = hi_h = math.inf
+    s2sum = 0.0
+    s2n = 0
+    sig2 = 0.0
+    for t in range(ns):
+        if st_dof[t] >= min_dof or (s2n == 0 and st_dof[t] > 0):
+            if st_dof[t] >= min_dof and s2n > 0 and t > 0 and st_dof[t - 1] < min_dof:
+                s2sum = 0.0  # drop the small-sample placeholder
+                s2n = 0
+            s2sum += st_rss[t] / st_dof[t]
+            s2n += 1
+            sig2 = s2sum / s2n
+        sd_u = gamma * math.sqrt(sig2 * st_g[t, 0])
+        sd_v = gamma * math.sqrt(sig2 * st_g[t, 1])
+        sd_h = gamma * math.sqrt(sig2 * st_g[t, 2])
+        lo_u = max(lo_u, st_val[t, 0] - sd_u)
+        hi_u = min(hi_u, st_val[t, 0] + sd_u)
+        lo_v = max(lo_v, st_val[t, 1] - sd_v)
+        hi_v = min(hi_v, st_val[t, 1] + sd_v)
+        lo_h = max(lo_h, st_val[t, 2] - sd_h)
+        hi_h = min(hi_h, st_val[t, 2] + sd_h)
+        if chosen >= 0 and (lo_u > hi_u or lo_v > hi_v or lo_h > hi_h):
+            break  # the intervals no longer intersect: bias dominates
+        chosen = t
+    return chosen
+
+
+def _auto_k_counts_py(hood, jet, sizes, kframe, gamma, min_dof, counts):
+    """Chosen neighbourhood size (distinct points used) of each query into ``counts[i]``.
+
+    Nested neighbourhoods (first ``sizes[s]`` rows) of one sorted k-NN list ``hood.nbr``; one
+    frame per point (PCA of the first ``kframe`` rows). Per size the slopes ``a10, a01`` and
+    ``H`` with their standard deviations ``sigma sqrt(G_ii)`` (``G`` the inverse moment
+    matrix); the chosen size is the largest whose confidence intervals ``value +- gamma sd``
+    still intersect those of every smaller size (ICI rule, :func:`_ici_choice`). A point with
+    no well-posed size gets the count of the full list's fit.
+    """
+    P, source, _, nbr, dist, _ = hood
+    order, _, max_cond, interp, ep, eq = jet
+    Q, K = nbr.shape
+    M = ep.shape[0]
+    S = sizes.shape[0]
+    n2 = 2 * order
+    nchunks = (Q + _CHUNK - 1) // _CHUNK
+    for c in nb.prange(nchunks):
+        uv = np.empty((1, K, 2))
+        z = np.empty((1, K))
+        valid = np.empty((1, K), dtype=np.bool_)
+        w1 = np.ones((1, 1))
+        Rl = np.empty((1, 3, 3))
+        lam = np.empty((1, 3))
+        a = np.empty((3, 3))
+        v = np.empty((3, 3))
+        cf = np.empty((1, M))
+        ws = (np.empty((n2 + 1, n2 + 1)), np.empty(M), np.empty(n2 + 1), np.empty(n2 + 1),
+              np.empty((M, M)), np.empty((M, M)), np.empty((M, M)), np.empty(M), np.empty(M),
+              np.empty(M), np.empty(M), np.empty(M), np.empty(M))
+        stats = (np.empty(S), np.empty(S, dtype=np.int64), np.empty(S, dtype=np.int64),
+                 np.empty((S, 3)), np.empty((S, 3)), np.empty((S, M)))
+        scratch = fit_scratch(order, K)
+        for i in range(c * _CHUNK, min(Q, (c + 1) * _CHUNK)):
+            height_frame(P, source[i], nbr[i], dist[i], K, uv, z, valid, 0, Rl, 0, lam, a, v,
+                         kframe)
+            ns = _size_statistics(uv, z, valid, sizes, order, max_cond, interp, ep, eq, ws,
+                                  stats)
+            chosen = _ici_choice(ns, stats, gamma, min_dof)
+            if chosen >= 0:
+                counts[i] = stats[2][chosen]
+            else:
+                # no candidate well posed: the full list with the usual order fallback
+                _, _, _, _, _, cn = fit_item(uv, z, w1, False, valid, True, 0, 0.0, order, True,
+                                             max_cond, 100.0, interp, ep, eq, scratch, cf, 0)
+                counts[i] = cn
+
+
+auto_k_counts_par, auto_k_counts_ser = njit_pair(_auto_k_counts_py)
+
+
+def auto_k_counts(hood: Hoods, jet: JetSettings, *, sizes: np.ndarray, kframe: int,
+                  gamma: float, min_dof: int) -> np.ndarray:
+    """``(Q,)`` int64: the size chosen per query by :func:`_auto_k_counts_py`."""
+    counts = np.empty(hood.nbr.shape[0], dtype=np.int64)
+    par = hood.nbr.shape[0] >= PARALLEL_MIN // 8
+    (auto_k_counts_par if par else auto_k_counts_ser)(hood, jet, sizes, kframe, gamma, min_dof,
+                                                      counts)
+    return counts
