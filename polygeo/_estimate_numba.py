@@ -10,10 +10,12 @@ in one parallel loop whose work arrays stay in cache:
 * :func:`auto_k_counts` — ``k="auto"``: per point, the neighbourhood size chosen by the
   intersection of confidence intervals over nested neighbourhoods of one sorted k-NN list.
 
-Their arguments come grouped in three small records (plain named tuples of arrays and
-scalars, which numba passes at no cost): :class:`Hoods` (the neighbourhoods of a chunk of
-query points), :class:`JetSettings` (what the fit needs) and :class:`Quantities` (the output
-arrays, one row per point of the cloud).
+Their arguments come grouped in three small records (named tuples of arrays and scalars):
+:class:`Hoods` (the neighbourhoods of a chunk of query points), :class:`JetSettings` (what
+the fit needs) and :class:`Quantities` (the output arrays, one row per point of the cloud).
+numba's parallel loops cannot take a tuple (its gufunc wrapper has no tuple arguments, numba
+issue 2651; writes through a tuple of arrays are silently lost), so the records are unpacked
+by field name at the call and each kernel has one parameter per field, of the same name.
 """
 
 from __future__ import annotations
@@ -77,27 +79,16 @@ def _gaussian_weights(uv, z, valid, radius, w):
         w[0, j] = math.exp(-d2_ / h2) if valid[0, j] else 0.0
 
 
-@nb.njit(cache=True, inline="always")
-def _store(out, o, cf, Rl, status, fitted_order, count, residual):
-    """Geometry at the origin of jet ``cf[0]`` in frame ``Rl[0]``, and the fit, into row ``o``."""
-    origin_geometry(cf, 0, Rl, 0, out.normals, out.d1, out.d2, out.curvatures, o)
-    for j in range(cf.shape[1]):
-        out.coeffs[o, j] = cf[0, j]
-    for r in range(3):
-        for c in range(3):
-            out.frame[o, r, c] = Rl[0, r, c]
-    out.status[o] = status
-    out.fitted_order[o] = fitted_order
-    out.n_neighbors[o] = count
-    out.residual[o] = residual
+def _frames_fit_quantities_py(points, source, row, nbr, dist, kuse, order, gaussian, max_cond,
+                              interpolate, ep, eq, normals, d1, d2, curvatures, status,
+                              fitted_order, n_neighbors, residual, frame, coeffs):
+    """Frames -> fit -> quantities of each query ``i``, results into row ``row[i]``.
 
-
-def _frames_fit_quantities_py(hood, jet, out):
-    """Frames -> fit -> quantities of each query ``i``, results into row ``hood.row[i]``."""
-    P, source, row, nbr, dist, kuse = hood
-    order, gaussian, max_cond, interp, ep, eq = jet
+    The parameters are the fields of :class:`Hoods`, :class:`JetSettings` and
+    :class:`Quantities` (see :func:`frames_fit_quantities`).
+    """
     Q, K = nbr.shape
-    M = out.coeffs.shape[1]
+    M = coeffs.shape[1]
     nchunks = (Q + _CHUNK - 1) // _CHUNK
     for c in nb.prange(nchunks):
         # one item's work arrays, reused (row 0) so that they stay in L1
@@ -112,17 +103,27 @@ def _frames_fit_quantities_py(hood, jet, out):
         v = np.empty((3, 3))
         scratch = fit_scratch(order, K)
         for i in range(c * _CHUNK, min(Q, (c + 1) * _CHUNK)):
+            o = row[i]
             # frame: PCA of the neighbourhood, height coordinates (u, v, z)
-            _, rad = height_frame(P, source[i], nbr[i], dist[i], kuse[i], uv, z, valid, 0, Rl, 0,
-                                  lam, a, v)
+            _, rad = height_frame(points, source[i], nbr[i], dist[i], kuse[i], uv, z, valid, 0,
+                                  Rl, 0, lam, a, v)
             if gaussian:
                 _gaussian_weights(uv, z, valid, rad, w)
             # fit: the jet of the requested order (lower orders as fallback)
             fo, st, _, rs, _, cnt = fit_item(uv, z, w, gaussian, valid, True, 0, 0.0, order,
-                                             True, max_cond, 100.0, interp, ep, eq, scratch,
+                                             True, max_cond, 100.0, interpolate, ep, eq, scratch,
                                              cf, 0)
             # quantities at the jet's origin, in world axes
-            _store(out, row[i], cf, Rl, st, fo, cnt, rs)
+            origin_geometry(cf, 0, Rl, 0, normals, d1, d2, curvatures, o)
+            for j in range(M):
+                coeffs[o, j] = cf[0, j]
+            for r in range(3):
+                for cc in range(3):
+                    frame[o, r, cc] = Rl[0, r, cc]
+            status[o] = st
+            fitted_order[o] = fo
+            n_neighbors[o] = cnt
+            residual[o] = rs
 
 
 frames_fit_quantities_par, frames_fit_quantities_ser = njit_pair(_frames_fit_quantities_py)
@@ -130,9 +131,15 @@ frames_fit_quantities_par, frames_fit_quantities_ser = njit_pair(_frames_fit_qua
 
 def frames_fit_quantities(hood: Hoods, jet: JetSettings, out: Quantities,
                           parallel_min: int = PARALLEL_MIN) -> None:
-    """Run the fused frames -> fit -> quantities kernel (parallel from ``parallel_min``)."""
+    """Run the fused frames -> fit -> quantities kernel (parallel from ``parallel_min``).
+
+    The records' fields reach the kernel by name: numba's parallel loops cannot take tuples
+    (writes through a tuple of arrays are lost, numba issue 2651), so the kernel has one
+    parameter per field.
+    """
     par = hood.nbr.shape[0] >= parallel_min
-    (frames_fit_quantities_par if par else frames_fit_quantities_ser)(hood, jet, out)
+    kernel = frames_fit_quantities_par if par else frames_fit_quantities_ser
+    kernel(**hood._asdict(), **jet._asdict(), **out._asdict())
 
 
 # ----------------------------------------------------------------------------- k = "auto"
@@ -150,7 +157,7 @@ def _g_column(L, Ld, D, m, a, g, y, col):
 
 
 @nb.njit(cache=True, inline="always")
-def _size_statistics(uv, z, valid, sizes, order, max_cond, interp, ep, eq, ws, stats):
+def _size_statistics(uv, z, valid, sizes, order, max_cond, interpolate, ep, eq, ws, stats):
     """Fits over the nested neighbourhoods (first ``sizes[s]`` rows) of item 0.
 
     Moments accumulated along the sorted rows so that every size costs one small solve. Per
@@ -200,7 +207,7 @@ def _size_statistics(uv, z, valid, sizes, order, max_cond, interp, ep, eq, ws, s
         solve_factored(L, Ld, M, g, y)
         for m in range(M):
             x[m] = D[m] * y[m]
-        if interp:
+        if interpolate:
             _g_column(L, Ld, D, M, 0, g, y, col)
             f = x[0] / col[0]
             for m in range(M):
@@ -214,7 +221,7 @@ def _size_statistics(uv, z, valid, sizes, order, max_cond, interp, ep, eq, ws, s
             for m2 in range(M):
                 xsx += x[m] * x[m2] * mom[ep[m] + ep[m2], eq[m] + eq[m2]]
         st_rss[ns] = max(zz - 2.0 * xr + xsx, 0.0)
-        st_dof[ns] = cnt - M + (1 if interp else 0)
+        st_dof[ns] = cnt - M + (1 if interpolate else 0)
         st_cnt[ns] = cnt
         # slopes and H (to first order a20 + a02) and their variances / sigma^2
         _g_column(L, Ld, D, M, 1, g, y, col)
@@ -282,18 +289,17 @@ def _ici_choice(ns, stats, gamma, min_dof):
     return chosen
 
 
-def _auto_k_counts_py(hood, jet, sizes, kframe, gamma, min_dof, counts):
+def _auto_k_counts_py(points, source, nbr, dist, order, max_cond, interpolate, ep, eq, sizes,
+                      kframe, gamma, min_dof, counts):
     """Chosen neighbourhood size (distinct points used) of each query into ``counts[i]``.
 
-    Nested neighbourhoods (first ``sizes[s]`` rows) of one sorted k-NN list ``hood.nbr``; one
+    Nested neighbourhoods (first ``sizes[s]`` rows) of one sorted k-NN list ``nbr``; one
     frame per point (PCA of the first ``kframe`` rows). Per size the slopes ``a10, a01`` and
     ``H`` with their standard deviations ``sigma sqrt(G_ii)`` (``G`` the inverse moment
     matrix); the chosen size is the largest whose confidence intervals ``value +- gamma sd``
     still intersect those of every smaller size (ICI rule, :func:`_ici_choice`). A point with
     no well-posed size gets the count of the full list's fit.
     """
-    P, source, _, nbr, dist, _ = hood
-    order, _, max_cond, interp, ep, eq = jet
     Q, K = nbr.shape
     M = ep.shape[0]
     S = sizes.shape[0]
@@ -316,9 +322,9 @@ def _auto_k_counts_py(hood, jet, sizes, kframe, gamma, min_dof, counts):
                  np.empty((S, 3)), np.empty((S, 3)), np.empty((S, M)))
         scratch = fit_scratch(order, K)
         for i in range(c * _CHUNK, min(Q, (c + 1) * _CHUNK)):
-            height_frame(P, source[i], nbr[i], dist[i], K, uv, z, valid, 0, Rl, 0, lam, a, v,
-                         kframe)
-            ns = _size_statistics(uv, z, valid, sizes, order, max_cond, interp, ep, eq, ws,
+            height_frame(points, source[i], nbr[i], dist[i], K, uv, z, valid, 0, Rl, 0, lam, a,
+                         v, kframe)
+            ns = _size_statistics(uv, z, valid, sizes, order, max_cond, interpolate, ep, eq, ws,
                                   stats)
             chosen = _ici_choice(ns, stats, gamma, min_dof)
             if chosen >= 0:
@@ -326,7 +332,8 @@ def _auto_k_counts_py(hood, jet, sizes, kframe, gamma, min_dof, counts):
             else:
                 # no candidate well posed: the full list with the usual order fallback
                 _, _, _, _, _, cn = fit_item(uv, z, w1, False, valid, True, 0, 0.0, order, True,
-                                             max_cond, 100.0, interp, ep, eq, scratch, cf, 0)
+                                             max_cond, 100.0, interpolate, ep, eq, scratch, cf,
+                                             0)
                 counts[i] = cn
 
 
@@ -338,6 +345,8 @@ def auto_k_counts(hood: Hoods, jet: JetSettings, *, sizes: np.ndarray, kframe: i
     """``(Q,)`` int64: the size chosen per query by :func:`_auto_k_counts_py`."""
     counts = np.empty(hood.nbr.shape[0], dtype=np.int64)
     par = hood.nbr.shape[0] >= PARALLEL_MIN // 8
-    (auto_k_counts_par if par else auto_k_counts_ser)(hood, jet, sizes, kframe, gamma, min_dof,
-                                                      counts)
+    kernel = auto_k_counts_par if par else auto_k_counts_ser
+    kernel(points=hood.points, source=hood.source, nbr=hood.nbr, dist=hood.dist,
+           order=jet.order, max_cond=jet.max_cond, interpolate=jet.interpolate, ep=jet.ep,
+           eq=jet.eq, sizes=sizes, kframe=kframe, gamma=gamma, min_dof=min_dof, counts=counts)
     return counts
