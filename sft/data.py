@@ -177,9 +177,14 @@ def _load_ply_template(path: Path) -> Template:
     data = read_mesh(path)
     col = None
     a = data.attributes
-    if all(c in a for c in ("red", "green", "blue")):
-        rgb = np.stack([np.asarray(a[c], dtype=np.float32) for c in ("red", "green", "blue")], 1)
-        col = rgb / (255.0 if np.issubdtype(a["red"].dtype, np.integer) else 1.0)
+    if "colors" in a and np.ndim(a["colors"]) == 2:  # polygeo.io groups red/green/blue
+        raw = np.asarray(a["colors"])[:, :3]
+    elif all(c in a for c in ("red", "green", "blue")):
+        raw = np.stack([np.asarray(a[c]) for c in ("red", "green", "blue")], 1)
+    else:
+        raw = None
+    if raw is not None:
+        col = raw.astype(np.float32) / (255.0 if np.issubdtype(raw.dtype, np.integer) else 1.0)
     return Template(verts=data.points, faces=data.faces, colors=col)
 
 
