@@ -149,14 +149,14 @@ def polygeo_stages(P, k, order, repeats=3):
         q = np.arange(len(P)) if q is None else q
         nbr, dist = idx.query(P[q], k, self_index=q)
         t1 = time.perf_counter()
-        local = E._Local(P, q, nbr, dist, k)
+        local = E.height_frames(P, q, nbr, dist, k)
         t2 = time.perf_counter()
         fit = jets.fit(
             torch.from_numpy(local.uv), torch.from_numpy(local.z), order,
             mask=torch.from_numpy(local.valid), backend="numba",
         )
         t3 = time.perf_counter()
-        E._geometry(fit.coeffs.double().numpy(), local.R)
+        E.origin_quantities(fit.coeffs.double().numpy(), local.R)
         t4 = time.perf_counter()
         t_knn.append(t1 - t0)
         t_stage.append(t4 - t1)

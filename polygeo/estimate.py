@@ -73,11 +73,56 @@ __all__ = [
     "AUTO_K_SMOOTH",
     "AUTO_ORDERS",
     "MAX_COND",
+    "height_frames",
+    "origin_quantities",
 ]
 
-# the unfused frames stage and the quantities of a jet, for benchmarks/bm_jets.py's stage timings
-_Local = Local
-_geometry = jet_geometry
+
+def height_frames(points, query_index, neighbor_index, neighbor_distance, sizes) -> Local:
+    """The frames stage on its own: each neighbourhood in its PCA height frame.
+
+    The compiled pipeline fuses this stage with the fit; it is public for stage timings
+    (``benchmarks/bm_jets.py``) and for users who fit jets of their own to the same frames.
+
+    Parameters
+    ----------
+    points : (N, 3) float64 ndarray
+        The cloud (any unit).
+    query_index : (Q,) int64 ndarray
+        The points whose neighbourhoods are framed.
+    neighbor_index, neighbor_distance : (Q, K) int64 / float64 ndarrays
+        Their neighbours nearest first (``-1`` / ``inf`` padding), the point itself first.
+    sizes : int or (Q,) int64 ndarray
+        Neighbours used per query (``<= K``).
+
+    Returns
+    -------
+    Local
+        ``uv (Q, K, 2)``, ``z (Q, K)`` height coordinates in the point's unit, ``valid (Q, K)``,
+        frame rotations ``R (Q, 3, 3)`` (columns: two tangents and the normal), ``count (Q,)``
+        and ``radius (Q,)``.
+    """
+    return Local(points, query_index, neighbor_index, neighbor_distance, sizes)
+
+
+def origin_quantities(coeffs, rotations) -> dict:
+    """The quantities stage on its own: geometry of jets at their frames' origins.
+
+    Parameters
+    ----------
+    coeffs : (Q, M) float64 ndarray
+        Jet coefficients in their height frames (``jets`` monomial order, ``M >= 6``
+        for curvature; lower orders are padded with zeros).
+    rotations : (Q, 3, 3) float64 ndarray
+        The frames (as :func:`height_frames` returns them).
+
+    Returns
+    -------
+    dict
+        ``normals, d1, d2 (Q, 3)`` in world axes and ``k1, k2, mean_curvature,
+        gaussian_curvature (Q,)`` in inverse units of the points (Monge sign convention).
+    """
+    return jet_geometry(coeffs, rotations)
 
 
 @dataclass(frozen=True)

@@ -22,10 +22,7 @@ CORE = "polygeo"
 #: Known uses being removed by the restructuring of issue 15 (file, private name): the
 #: estimate stages, which benchmarks/bm_jets.py times one by one. Delete an entry when its
 #: use is gone; nothing may be added here.
-PENDING = {
-    ("benchmarks/bm_jets.py", "polygeo.estimate._Local"),
-    ("benchmarks/bm_jets.py", "polygeo.estimate._geometry"),
-}
+PENDING: set[tuple[str, str]] = set()
 
 
 def _private(segment: str) -> bool:
