@@ -10,6 +10,8 @@ imports another method.
 - :mod:`draping.metrics` - edge, area and collision errors, distances and normal angles.
 - ``draping.drape`` - the reference-drape pipeline (body + motion + garment -> skinning ->
   per-frame solves -> metrics, resumable run folders) behind ``polygeo drape-reference``.
+- ``draping.outputs`` - the run folder every drape method writes (frame PLYs, ``metrics.json``,
+  strip and GIF) from plain arrays.
 - ``draping.body``, ``draping.motion``, ``draping.garments``, ``draping.skinning``,
   ``draping.viz`` - the posable body, motions, garment templates, skinning and pictures.
 - methods: ``draping.gaps``, ``draping.onefit``, ``draping.garnet``, ``draping.fnopt``.

@@ -351,19 +351,20 @@ class FrameResult(NamedTuple):
 
 def _row(scene: DrapeScene, t: int, res: reference.DrapeResult, distance: torch.Tensor,
          seconds: float, cpu_seconds: float) -> dict:
-    from .metrics import area_error, collision_error, edge_error
+    from .outputs import frame_metrics
 
     g = scene.garment
+    m = frame_metrics(res.x, g.vertices, g.faces, distance=distance)
     return {
         "frame": t,
-        "eps_e": float(edge_error(res.x, torch.from_numpy(g.vertices), g.faces)),
-        "eps_a": float(area_error(res.x, torch.from_numpy(g.vertices), g.faces)),
-        "eps_c": float(collision_error(distance)),
+        "eps_e": m["eps_e"],
+        "eps_a": m["eps_a"],
+        "eps_c": m["eps_c"],
         "energy": float(res.energy),
         "residual": float(res.residual),
         "iterations": int(res.iterations),
         "converged": bool(res.converged),
-        "min_distance_mm": 1000.0 * float(distance.min()),
+        "min_distance_mm": m["min_distance_mm"],
         "seconds": float(seconds),
         "cpu_seconds": float(cpu_seconds),
     }
@@ -427,39 +428,17 @@ def _settings_record(job: DrapeJob, solver: reference.SolverSettings) -> dict:
     return {"job": dataclasses.asdict(job), "solver": dataclasses.asdict(solver), "version": 1}
 
 
-def _write_frame(out: Path, t: int, x: torch.Tensor, body_v: torch.Tensor, scene: DrapeScene):
-    from polygeo.io import write_ply
-
-    write_ply(out / "meshes" / f"{t:06d}.ply", x.numpy(), scene.garment.faces,
-              precision="double")
-    write_ply(out / "body" / f"{t:06d}.ply", body_v.numpy(), scene.body_faces)
-
-
-def _summary(rows: list, scene: DrapeScene, solver) -> dict:
-    keys = [k for k in ("eps_e", "eps_a", "eps_c", "energy", "seconds", "cpu_seconds",
-                        "iterations") if all(k in r for r in rows)]
-    mean = {k: float(np.mean([r[k] for r in rows])) for k in keys}
-    worst = {k: float(np.max([r[k] for r in rows])) for k in keys}
-    return {
-        "garment_vertices": int(len(scene.garment.vertices)),
-        "frames": len(rows), "dt": scene.dt, "static": scene.job.static,
-        "mean": mean, "max": worst,
-        "all_converged": bool(all(r["converged"] for r in rows)),
-        "settings": _settings_record(scene.job, solver),
-        "per_frame": rows,
-    }
-
-
 def run_drape(job: DrapeJob, out_dir: str | Path, solver: reference.SolverSettings | None = None,
               *, resume: bool = True, quiet: bool = False, pictures: bool = True,
               body: AnnyBody | None = None,
               on_frame: Callable[[FrameResult], None] | None = None) -> DrapeRun:
     """Drape a job and write its run folder.
 
-    Writes ``meshes/000000.ply ...`` (garment, float64), ``body/000000.ply ...`` (posed body),
-    ``garment.npz`` (the rest garment), ``metrics.json`` (per-frame rows and their mean and
-    max), ``strip.png`` and ``drape.gif`` (``pictures``), and ``checkpoint.pt`` after every
-    frame: a run interrupted after frame ``t`` resumes at ``t + 1`` with the same results.
+    Writes the run folder of :mod:`draping.outputs` (``meshes/000000.ply ...`` garment,
+    float64; ``body/000000.ply ...`` posed body; ``metrics.json`` per-frame rows with their
+    mean and max; ``strip.png`` and ``drape.gif`` with ``pictures``) plus ``garment.npz`` (the
+    rest garment) and ``checkpoint.pt`` after every frame: a run interrupted after frame ``t``
+    resumes at ``t + 1`` with the same results.
 
     Parameters
     ----------
@@ -481,15 +460,10 @@ def run_drape(job: DrapeJob, out_dir: str | Path, solver: reference.SolverSettin
     -------
     DrapeRun
     """
-    from polygeo.runs import (
-        atomic_write_json,
-        fingerprint,
-        progress,
-        resume_state,
-        save_checkpoint,
-    )
+    from polygeo.runs import fingerprint, progress, resume_state, save_checkpoint
 
     from .garments import read_garment_npz, save_garment
+    from .outputs import write_frame, write_metrics, write_pictures
 
     solver = DEFAULT_SOLVER if solver is None else solver
     out = Path(out_dir)
@@ -508,7 +482,8 @@ def run_drape(job: DrapeJob, out_dir: str | Path, solver: reference.SolverSettin
     n = scene.body_vertices.shape[0]
     bar = progress(total=n, desc="drape", quiet=quiet, initial=start, unit="frame")
     for fr in drape_frames(scene, solver, start=start, x=x, v=v):
-        _write_frame(out, fr.frame, fr.x, scene.body_vertices[fr.frame], scene)
+        write_frame(out, fr.frame, fr.x, scene.garment.faces, scene.body_vertices[fr.frame],
+                    scene.body_faces)
         rows.append(fr.row)
         save_checkpoint(out / CHECKPOINT, {"x": fr.x, "v": fr.v},
                         {"fingerprint": fp, "next_frame": fr.frame + 1, "rows": rows})
@@ -517,33 +492,10 @@ def run_drape(job: DrapeJob, out_dir: str | Path, solver: reference.SolverSettin
         if on_frame is not None:
             on_frame(fr)
     bar.close()
-    summary = _summary(rows, scene, solver)
-    atomic_write_json(out / "metrics.json", summary)
+    summary = write_metrics(
+        out, rows, _settings_record(job, solver), garment_vertices=int(len(scene.garment.vertices)),
+        dt=scene.dt, static=job.static, all_converged=bool(all(r["converged"] for r in rows)))
     if pictures:
-        _pictures(out, scene, n)
+        write_pictures(out, scene.garment.faces, n, body_vertices=scene.proxy_vertices,
+                       body_faces=scene.proxy_faces, fps=1.0 / scene.dt)
     return DrapeRun(out, rows, summary, start)
-
-
-def _pictures(out: Path, scene: DrapeScene, n: int, strip: int = 6, gif: int = 40) -> None:
-    """``strip.png`` (a few frames) and ``drape.gif`` (up to ``gif`` frames): garment + body."""
-    from polygeo.io import read_mesh
-
-    from . import viz
-
-    def frame(t):
-        x = np.asarray(read_mesh(out / "meshes" / f"{t:06d}.ply").points, dtype=np.float64)
-        b = scene.proxy_vertices[t].numpy()
-        return np.concatenate([b, x])
-
-    nb = scene.proxy_vertices.shape[1]
-    faces = np.concatenate([scene.proxy_faces, scene.garment.faces + nb])
-    colors = np.concatenate([np.full(nb, 0.25), np.full(len(scene.garment.vertices), 0.9)])
-
-    def render(ts):
-        return viz.render_frames([frame(t) for t in ts], faces, colors=[colors] * len(ts),
-                                 titles=[f"frame {t}" for t in ts], elev=10.0, azim=-70.0)
-
-    ts = sorted(set(np.linspace(0, n - 1, min(strip, n)).round().astype(int).tolist()))
-    viz.write_strip(render(ts), out / "strip.png")
-    ts = sorted(set(np.linspace(0, n - 1, min(gif, n)).round().astype(int).tolist()))
-    viz.write_gif(render(ts), out / "drape.gif", fps=min(30.0, 1.0 / scene.dt))

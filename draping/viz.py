@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["render_frames", "write_gif", "write_strip", "plot_curves"]
+__all__ = ["render_frames", "render_drapes", "write_gif", "write_strip", "plot_curves"]
 
 
 def _plt():
@@ -73,6 +73,26 @@ def render_frames(vertices: Sequence, faces, *, points: Sequence | None = None,
         buf.seek(0)
         images.append(Image.open(buf).convert("RGB"))
     return images
+
+
+def render_drapes(meshes: Sequence, garment_faces, *, titles: Sequence[str] | None = None,
+                  elev: float = 10.0, azim: float = -70.0, size: float = 3.0) -> list:
+    """Render garments on bodies: ``meshes[k] = (body_vertices, body_faces, garment_vertices)``.
+
+    The body is drawn dark and the garment light, one fixed bounding box over all frames.
+    Returns a list of ``PIL.Image``.
+    """
+    gf = np.asarray(garment_faces, dtype=np.int64)
+    verts, faces, colors = [], [], []
+    for b, bf, x in meshes:
+        b, x = np.asarray(b, dtype=np.float64), np.asarray(x, dtype=np.float64)
+        verts.append(np.concatenate([b, x]))
+        faces.append(np.concatenate([np.asarray(bf, dtype=np.int64), gf + len(b)]))
+        colors.append(np.concatenate([np.full(len(b), 0.25), np.full(len(x), 0.9)]))
+    if any(f.shape != faces[0].shape or not np.array_equal(f, faces[0]) for f in faces):
+        raise ValueError("meshes: expected the same body faces in every frame")
+    return render_frames(verts, faces[0], colors=colors, titles=titles, elev=elev, azim=azim,
+                         size=size)
 
 
 def write_gif(images: Sequence, path: str | os.PathLike, fps: float = 20.0) -> Path:
