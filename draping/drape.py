@@ -59,12 +59,9 @@ __all__ = [
     "run_drape",
 ]
 
-#: Solver settings of the pipeline (see :class:`draping.reference.SolverSettings`): the
-#: reference defaults but the body re-queried every 3 iterations instead of 10. Measured on one
-#: dynamic frame of the shipped 5,000-vertex T-shirt on the walk (frame 3, one thread, shared
-#: machine): CPU 1.36 s / 18 iterations against 2.76 s / 34 (every 10) and 5.08 s / 47 (every
-#: 30), the same energy (0.24837 J) and no vertex inside the body.
-DEFAULT_SOLVER = reference.SolverSettings(requery_every=3)
+#: Solver settings of the pipeline: the reference defaults
+#: (:class:`draping.reference.SolverSettings`).
+DEFAULT_SOLVER = reference.SolverSettings()
 
 
 @dataclass(frozen=True)
@@ -370,8 +367,30 @@ def _row(scene: DrapeScene, t: int, res: reference.DrapeResult, distance: torch.
     }
 
 
+INITS = ("project", "freefall", "skin")
+
+
+def initial_guess(scene: DrapeScene, t: int, x: torch.Tensor, v: torch.Tensor, query,
+                  solver: reference.SolverSettings, init: str = "project") -> torch.Tensor:
+    """Initial guess of dynamic frame ``t`` from the state ``(x, v)`` of frame ``t - 1``.
+
+    ``"project"``: the free fall moved out of the posed body
+    (:func:`draping.reference.project_outside` to the collision clearance); ``"freefall"``:
+    the free fall itself; ``"skin"``: the previous drape moved by the skinned garment's
+    displacement from frame ``t - 1`` to ``t``, moved out of the body.
+    """
+    init = check_choice(init, "init", INITS)
+    if init == "skin":
+        guess = x + (scene.skinned[t] - scene.skinned[t - 1])
+    else:
+        guess = reference.free_fall(x, v, scene.dt, solver.gravity)
+    if init == "freefall":
+        return guess
+    return reference.project_outside(guess, query, solver.collision_eps)
+
+
 def drape_frames(scene: DrapeScene, solver: reference.SolverSettings | None = None, *,
-                 start: int = 0, x: Any = None, v: Any = None):
+                 start: int = 0, x: Any = None, v: Any = None, init: str = "project"):
     """Drape the scene's frames ``start .. T-1``, yielding a :class:`FrameResult` per frame.
 
     Parameters
@@ -382,6 +401,8 @@ def drape_frames(scene: DrapeScene, solver: reference.SolverSettings | None = No
     start : int
         First frame to solve; ``x``, ``v`` (m, m/s) are the state after frame ``start - 1``
         (needed for ``start > 0`` in dynamic drapes).
+    init : str
+        Initial guess of dynamic frames (:func:`initial_guess`).
 
     Yields
     ------
@@ -402,7 +423,8 @@ def drape_frames(scene: DrapeScene, solver: reference.SolverSettings | None = No
         if t == 0 or scene.job.static:
             res = reference.drape_static(scene.rest, scene.skinned[t], query, solver)
         else:
-            res = reference.drape_step(scene.rest, x, v, scene.dt, query, solver)
+            x0 = initial_guess(scene, t, x, v, query, solver, init)
+            res = reference.drape_step(scene.rest, x, v, scene.dt, query, solver, x0=x0)
         distance = query.query(res.x).distance
         seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
         x, v = res.x, res.v

@@ -68,6 +68,8 @@ __all__ = [
     "drape_static",
     "drape_step",
     "drape_sequence",
+    "free_fall",
+    "project_outside",
 ]
 
 #: ``query(points (N, 3) float64 tensor) -> (distance (N,), normal (N, 3))``: signed distance to
@@ -105,7 +107,10 @@ class SolverSettings:
     collision_eps : float
         Collision clearance ``epsilon`` (m).
     requery_every : int
-        Iterations between body queries (the tangent planes are refreshed).
+        Iterations between body queries (the tangent planes are refreshed). The default 3 was
+        measured on one dynamic frame of the shipped 5,000-vertex T-shirt on the walk (frame 3,
+        one thread, shared machine): 1.36 CPU s / 18 iterations against 2.76 s / 34 (every 10)
+        and 5.08 s / 47 (every 30), the same energy (0.24837 J) and no vertex inside the body.
     max_requery : int
         Body queries per frame after the first; then the planes stay fixed until the
         tolerance is met.
@@ -124,7 +129,7 @@ class SolverSettings:
     history: int = 8
     collision_stiffness: float = 1e4
     collision_eps: float = 2e-3
-    requery_every: int = 10
+    requery_every: int = 3
     max_requery: int = 5
     bending: bool = True
     gravity: tuple[float, float, float] = physics.GRAVITY
@@ -440,6 +445,71 @@ def _solve(x0: torch.Tensor, pb: _Problem) -> tuple[torch.Tensor, float, float, 
 # ---------------------------------------------------------------------- public drivers
 
 
+def free_fall(x: Any, v: Any, dt: float, gravity: Sequence[float] = physics.GRAVITY
+              ) -> torch.Tensor:
+    """Free-fall prediction ``x + dt v + dt^2 g`` (m): the minimiser of inertia + gravity.
+
+    Parameters
+    ----------
+    x, v : (V, 3) float
+        Positions (m) and velocities (m/s).
+    dt : float
+        Time step (s), > 0.
+    gravity : (3,) float
+        m/s^2.
+
+    Returns
+    -------
+    (V, 3) float64 tensor
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, non-finite values, ``dt <= 0``.
+    """
+    xt = as_tensor(x, "x").detach().to(torch.float64)
+    check_shape(xt, "x", ("V", 3))
+    vt = _check_positions(v, xt.shape[0], "v")
+    dt = check_positive(dt, "dt")
+    return xt + dt * vt + dt * dt * torch.as_tensor(gravity, dtype=torch.float64)
+
+
+def project_outside(x: Any, query: QueryFn, clearance: float = 0.0) -> torch.Tensor:
+    """Move the vertices closer to the body than ``clearance`` out along the body normal.
+
+    A vertex at signed distance ``d < clearance`` (inside the body when ``d < 0``) moves by
+    ``(clearance - d) n`` onto the tangent plane of its closest body point, offset by
+    ``clearance``; the others stay. A cheap initial guess for :func:`drape_step` (the free
+    fall or the skinned garment can start inside a moving body).
+
+    Parameters
+    ----------
+    x : (V, 3) float
+        Positions (m).
+    query : QueryFn
+        The body.
+    clearance : float
+        Target distance (m), >= 0 (e.g. the collision clearance ``collision_eps``).
+
+    Returns
+    -------
+    (V, 3) float64 tensor
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, non-finite positions, a negative clearance or a bad query answer.
+    """
+    xt = as_tensor(x, "x").detach().to(torch.float64)
+    check_shape(xt, "x", ("V", 3))
+    check_finite(xt, "x")
+    c = check_positive(clearance, "clearance", strict=False)
+    anchor, normal = _planes(xt, query)
+    d = ((xt - anchor) * normal).sum(-1)
+    return xt + (c - d).clamp_min(0.0)[:, None] * normal
+
+
+
 def _check_positions(x: Any, n: int, name: str) -> torch.Tensor:
     t = as_tensor(x, name)
     check_shape(t, name, (n, 3))
@@ -538,6 +608,7 @@ def drape_step(
     settings: SolverSettings | None = None,
     pinned: Any = None,
     x_pinned: Any = None,
+    x0: Any = None,
 ) -> DrapeResult:
     """One backward-Euler frame (thesis eq. (25)-(26)) from ``(x_prev, v_prev)``.
 
@@ -557,6 +628,12 @@ def drape_step(
         Vertices prescribed at ``x_pinned`` (default: ``x_prev``, i.e. held still).
     x_pinned : (V, 3) float, optional
         Prescribed positions of the pinned vertices at the new frame (m).
+    x0 : (V, 3) float, optional
+        Initial guess of the minimisation (m); default the free fall ``x_prev + dt v_prev +
+        dt^2 g``, which on a moving body can start vertices inside it (a garment resting on
+        the shoulders of a walking body): pass e.g. :func:`project_outside` of it. The
+        minimum does not depend on it where the energy is convex; it does where the body
+        contact is (a vertex started deep inside a limb is pushed out the nearest way).
 
     Returns
     -------
@@ -575,8 +652,12 @@ def drape_step(
     vp = _check_positions(v_prev, n, "v_prev")
     dt = check_positive(dt, "dt")
     pb = _problem(rest, settings, query, pinned, xp, vp, float(dt))
-    # start from the free fall (the minimiser of inertia + gravity), pinned vertices at targets
-    x0 = xp + dt * vp + dt * dt * torch.as_tensor(pb.settings.gravity, dtype=xp.dtype)
+    # start from x0, by default the free fall (the minimiser of inertia + gravity), pinned
+    # vertices at their targets
+    if x0 is None:
+        x0 = free_fall(xp, vp, dt, pb.settings.gravity)
+    else:
+        x0 = _check_positions(x0, n, "x0")
     if x_pinned is not None:
         x0 = torch.where(pb.free[:, None], x0, _check_positions(x_pinned, n, "x_pinned"))
     else:
@@ -596,6 +677,7 @@ def drape_sequence(
     v0: Any = None,
     pinned: Any = None,
     pinned_positions: Sequence[Any] | None = None,
+    project: bool = True,
 ) -> list[DrapeResult]:
     """A dynamic drape: one :func:`drape_step` per body frame.
 
@@ -617,6 +699,9 @@ def drape_sequence(
         Prescribed vertices.
     pinned_positions : sequence of (V, 3) float, optional
         Their positions at frames 1..T (default: held at ``x0``).
+    project : bool
+        Start each step from the free fall moved out of the body (:func:`project_outside`
+        with the collision clearance) instead of the free fall itself.
 
     Returns
     -------
@@ -638,7 +723,12 @@ def drape_sequence(
     out = []
     for t, q in enumerate(queries):
         xp = None if pinned_positions is None else pinned_positions[t]
-        r = drape_step(rest, x, v, dt, q, settings, pinned, xp)
+        guess = None
+        if project and q is not None:
+            eps = (SolverSettings() if settings is None else settings).collision_eps
+            g = (SolverSettings() if settings is None else settings).gravity
+            guess = project_outside(free_fall(x, v, dt, g), q, eps)
+        r = drape_step(rest, x, v, dt, q, settings, pinned, xp, guess)
         out.append(r)
         x, v = r.x, r.v
     return out
