@@ -16,7 +16,10 @@ independent hard rasterization (OpenCV ``fillPoly`` per projected triangle on a 
 supersampled grid read at pixel centres) as a function of sigma, for the sheet and for a
 closed icosphere; the fast path also equals the dense oracle (max abs difference recorded).
 
-Usage: python benchmarks/bm_render.py [--quick] [--out DIR] [--threads 1,2]
+Kernels are compiled (or loaded from numba's cache) on a small scene before any timing; the
+time it took is recorded apart (``warmup_s``).
+
+Usage: python benchmarks/bm_render.py [--quick] [--out DIR] [--threads 1[,2]]
 """
 
 from __future__ import annotations
@@ -25,8 +28,8 @@ import argparse
 import gc
 import json
 import os
-import platform
 import statistics
+import sys
 import time
 import tracemalloc
 from pathlib import Path
@@ -47,6 +50,9 @@ from polygeo.render import (
     render_silhouette,
     soft_iou,
 )
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from run_env import environment, finish  # noqa: E402
 
 # ------------------------------------------------------------------ scenes
 
@@ -302,8 +308,6 @@ def run_child(kind: str, size: int, grid: str, mode: str, rows: int) -> dict:
 
 
 def main() -> int:
-    import sys
-
     if len(sys.argv) > 1 and sys.argv[1] == "--child":
         kind, size, grid, mode, rows = sys.argv[2:7]
         print(json.dumps(run_child(kind, int(size), grid, mode, int(rows))))
@@ -311,7 +315,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="smaller grid, fewer repetitions")
     ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
-    ap.add_argument("--threads", default="1,2", help="comma-separated thread counts to time")
+    ap.add_argument("--threads", default="1", help="comma-separated thread counts to time "
+                    "(default 1)")
     ap.add_argument("--reps", type=int, default=None)
     args = ap.parse_args()
     out_dir = Path(args.out)
@@ -325,15 +330,22 @@ def main() -> int:
     threads = [int(t) for t in args.threads.split(",")]
     sigmas = [1e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0, 3.0]
     default = RasterSettings()
+    env = environment()
+    # compile (or load from numba's cache) every kernel timed below before any timing
+    t_warm = time.perf_counter()
+    v, f, u, t, _ = scene(32, "1k")
+    for nt in threads:
+        numba.set_num_threads(min(nt, numba.config.NUMBA_NUM_THREADS))
+        for m in modes:
+            for call in make_calls(render, v, f, u, t, sheet_camera(32), default, m):
+                call()
+    warmup_s = time.perf_counter() - t_warm
+    print(f"warm-up (kernel compilation or cache load): {warmup_s:.1f} s")
     record = {
         "benchmark": "render",
-        "machine": {
-            "cpus": os.cpu_count(),
-            "platform": platform.platform(),
-            "loadavg_start": os.getloadavg(),
-            "torch": torch.__version__,
-            "numba": numba.__version__,
-        },  # fmt: skip
+        **env,
+        "quick": bool(args.quick),
+        "warmup_s": warmup_s,
         "settings": {
             "sigma_px2": default.sigma,
             "gamma": default.gamma,
@@ -380,7 +392,7 @@ def main() -> int:
     torch.set_num_threads(max(threads))
 
     record["iou_vs_sigma"] = iou_vs_sigma(sigmas)
-    record["machine"]["loadavg_end"] = os.getloadavg()
+    record.update(finish(env))
     record["targets"] = targets(record, default)
 
     out_json = out_dir / "bm_render.json"
