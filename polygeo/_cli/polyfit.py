@@ -72,8 +72,7 @@ def _run(args: argparse.Namespace) -> int:
     m = ps.metrics()
     s = m.summary()
     level = (2 if data.faces is not None else 0) if args.resample is None else args.resample
-    rv, rf = ps.resample(level)
-    rv = rv.detach().numpy()
+    rv, rf = ps.resample(level)  # NumPy: the points were read as NumPy
     deviation = None
     if data.faces is not None:
         deviation = _deviation(rv, data.points, data.faces)

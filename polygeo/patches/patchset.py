@@ -112,6 +112,10 @@ class PatchSet:
         ``(E_b, 2)`` int64 input edges whose ends lie in different patches.
     orient : str
         Canonicalisation used (``"pca"``, ``"stn"`` or ``"optimize"``).
+    numpy_io : bool
+        Whether :meth:`fit` was given NumPy (or other non-torch) points: then
+        :meth:`resample` and :meth:`fitted_vertices` return NumPy arrays, else torch tensors
+        (one array type per call, following the input; kept by :meth:`save` / :meth:`load`).
     info : dict
         Fit details (patch-count search for ``target_rmse``, timings).
     """
@@ -133,6 +137,7 @@ class PatchSet:
     normals: torch.Tensor | None
     boundary_pairs: torch.Tensor
     orient: str = "pca"
+    numpy_io: bool = False
     info: dict = field(default_factory=dict)
 
     # ---------------------------------------------------------------- basic properties
@@ -160,6 +165,10 @@ class PatchSet:
 
     def _patches(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         return self.coeffs, self.scale, self.rotation, self.translation
+
+    def _out(self, x: torch.Tensor) -> Any:
+        """``x`` as the fit's input type: a NumPy copy for NumPy input, else the tensor."""
+        return x.detach().cpu().numpy() if self.numpy_io else x
 
     # ---------------------------------------------------------------- fitting
 
@@ -249,6 +258,7 @@ class PatchSet:
         """
         settings = fit_settings(order, orient, tol, max_order, min_points_per_coeff, stn_model,
                                 optimize_steps)
+        numpy_io = is_numpy_like(points)
         v, f, nrm = _checked_surface(points, faces, normals)
         n_vertices = v.shape[0]
         if partition is not None and len(partition.labels) != n_vertices:
@@ -263,13 +273,13 @@ class PatchSet:
                 n_patches = patch_count_for_vertices(n_vertices, min_pts)
             if part is None:
                 part = partition_for_fit(v, f, n_patches, seed, min_pts)
-            return cls(**fit_partition(part, v, f, nrm, settings))
+            return cls(**fit_partition(part, v, f, nrm, settings), numpy_io=numpy_io)
         target = check_positive(target_rmse, "target_rmse")
         start = 16 if n_patches is None else check_int(n_patches, "n_patches", low=1)
 
         def fit_at(count: int) -> tuple[PatchSet, int, float]:
             part = partition_for_fit(v, f, count, seed, min_pts)
-            ps = cls(**fit_partition(part, v, f, nrm, settings))
+            ps = cls(**fit_partition(part, v, f, nrm, settings), numpy_io=numpy_io)
             return ps, ps.n_patches, ps.metrics(boundary=False).summary()["height_rmse_all"]
 
         best, search = search_patch_count(fit_at, start, max(1, n_vertices // min_pts), target,
@@ -384,9 +394,13 @@ class PatchSet:
         """Canonical uv of every input vertex in its own patch, ``(V, 2)``."""
         return vertex_uv(self.uv, self.mask, self.index, self.vertices.shape[0])
 
-    def fitted_vertices(self) -> torch.Tensor:
-        """Every input vertex evaluated through its own patch, ``(V, 3)`` (differentiable)."""
-        return evaluate_patches(*self._patches(), self.labels, self._vertex_uv())
+    def fitted_vertices(self) -> Any:
+        """Every input vertex evaluated through its own patch, ``(V, 3)`` float64.
+
+        NumPy for a set fitted from NumPy input (:attr:`numpy_io`), else a torch tensor,
+        differentiable w.r.t. the set's tensors.
+        """
+        return self._out(evaluate_patches(*self._patches(), self.labels, self._vertex_uv()))
 
     # ---------------------------------------------------------------- resampling
 
@@ -415,10 +429,12 @@ class PatchSet:
 
         Returns
         -------
-        vertices : torch.Tensor
-            ``(V_out, 3)`` float64 positions (differentiable w.r.t. the set's tensors).
-        faces : np.ndarray
-            ``(F_out, 3)`` int64 triangles.
+        vertices : numpy.ndarray or torch.Tensor
+            ``(V_out, 3)`` float64 positions (input units). NumPy for a set fitted from NumPy
+            input (:attr:`numpy_io`); else a torch tensor, differentiable w.r.t. the set's
+            tensors.
+        faces : numpy.ndarray or torch.Tensor
+            ``(F_out, 3)`` int64 triangles, of the same array type as ``vertices``.
 
         Raises
         ------
@@ -428,9 +444,11 @@ class PatchSet:
         level = check_int(resolution, "resolution", low=0, high=8)
         if self.faces is None:
             n = check_int(grid, "grid", low=2) * 2**level
-            return resample_grid(*self._patches(), self.domain, n)
-        return resample_subdivided(*self._patches(), self.labels, self.vertices, self.faces,
-                                   level)
+            verts, faces = resample_grid(*self._patches(), self.domain, n)
+        else:
+            verts, faces = resample_subdivided(*self._patches(), self.labels, self.vertices,
+                                               self.faces, level)
+        return self._out(verts), self._out(faces)
 
     # ---------------------------------------------------------------- metrics
 
@@ -490,7 +508,7 @@ class PatchSet:
             The path written.
         """
         return save_npz(path, {name: getattr(self, name) for name in
-                               ("orient", "faces", "normals", *TENSOR_FIELDS)})
+                               ("orient", "numpy_io", "faces", "normals", *TENSOR_FIELDS)})
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> PatchSet:

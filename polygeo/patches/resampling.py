@@ -3,7 +3,9 @@
 Pure functions over the patch tensors (``K`` patches; see :mod:`polygeo.patches.evaluation`):
 :func:`resample_subdivided` evaluates a subdivided input triangulation through the patches
 (watertight wherever the input was), :func:`resample_grid` samples every patch's uv box on a
-lattice (for point clouds, not connected across patches).
+lattice (for point clouds, not connected across patches). Both take and return torch tensors
+(faces as int64 tensors on the patches' device); :meth:`polygeo.patches.PatchSet.resample`
+converts both outputs to NumPy for a set fitted from NumPy input.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ __all__ = ["resample_subdivided", "resample_grid"]
 
 def resample_subdivided(coeffs: torch.Tensor, scale: torch.Tensor, rotation: torch.Tensor,
                         translation: torch.Tensor, labels: torch.Tensor, vertices: torch.Tensor,
-                        faces: torch.Tensor, level: int) -> tuple[torch.Tensor, np.ndarray]:
+                        faces: torch.Tensor, level: int) -> tuple[torch.Tensor, torch.Tensor]:
     """The input triangulation subdivided ``level`` times and evaluated through the patches.
 
     Every new vertex, a barycentric combination of a triangle's corners
@@ -45,7 +47,7 @@ def resample_subdivided(coeffs: torch.Tensor, scale: torch.Tensor, rotation: tor
     -------
     vertices : torch.Tensor
         ``(V_out, 3)`` float64 positions, differentiable w.r.t. the patch tensors.
-    faces : np.ndarray
+    faces : torch.Tensor
         ``(F * 4**level, 3)`` int64 triangles.
     """
     corners, weights, out_faces = subdivide_barycentric(faces, vertices.shape[0], level)
@@ -64,12 +66,13 @@ def resample_subdivided(coeffs: torch.Tensor, scale: torch.Tensor, rotation: tor
         uv = (w[..., None] * uvs).sum(1)
         x = evaluate_patches(coeffs, scale, rotation, translation, patch, uv)
         out = out + w[:, slot, None] * x
-    return out, out_faces
+    return out, torch.from_numpy(np.ascontiguousarray(out_faces, dtype=np.int64)).to(
+        vertices.device)
 
 
 def resample_grid(coeffs: torch.Tensor, scale: torch.Tensor, rotation: torch.Tensor,
                   translation: torch.Tensor, domain: torch.Tensor,
-                  n: int) -> tuple[torch.Tensor, np.ndarray]:
+                  n: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Every patch sampled on an ``n x n`` lattice of its uv box and triangulated on its own.
 
     Parameters
@@ -85,7 +88,7 @@ def resample_grid(coeffs: torch.Tensor, scale: torch.Tensor, rotation: torch.Ten
     -------
     vertices : torch.Tensor
         ``(K * n * n, 3)`` float64 positions (patch by patch).
-    faces : np.ndarray
+    faces : torch.Tensor
         ``(K * 2 (n - 1)**2, 3)`` int64 triangles.
     """
     n_patches = int(scale.shape[0])
@@ -102,4 +105,4 @@ def resample_grid(coeffs: torch.Tensor, scale: torch.Tensor, rotation: torch.Ten
     q00, q10, q11, q01 = i * n + j, (i + 1) * n + j, (i + 1) * n + j + 1, i * n + j + 1
     one = np.concatenate([np.stack([q00, q10, q11], 1), np.stack([q00, q11, q01], 1)])
     faces = (one[None] + (np.arange(n_patches) * n * n)[:, None, None]).reshape(-1, 3)
-    return verts, faces.astype(np.int64)
+    return verts, torch.from_numpy(faces.astype(np.int64)).to(verts.device)

@@ -1,6 +1,7 @@
 """NPZ files of PolyFit patch sets (:meth:`polygeo.patches.PatchSet.save` / ``load``).
 
-A file holds ``version`` (:data:`NPZ_VERSION`), ``orient`` (a string) and one array per
+A file holds ``version`` (:data:`NPZ_VERSION`), ``orient`` (a string), ``numpy_io`` (a bool:
+the set was fitted from NumPy input; absent in older files, read as False) and one array per
 tensor field of the set; ``faces`` and ``normals`` only when present. Files are read with
 ``allow_pickle=False`` and replaced atomically when written.
 """
@@ -35,8 +36,9 @@ def save_npz(path: str | os.PathLike, fields: dict[str, Any]) -> Path:
     path : str or os.PathLike
         Destination; ``.npz`` is appended if missing. Parent folders are created.
     fields : dict
-        ``orient`` (str), every name of :data:`TENSOR_FIELDS` (tensors or arrays) and
-        ``faces`` / ``normals`` (None to leave out).
+        ``orient`` (str), ``numpy_io`` (bool, optional: False when absent), every name of
+        :data:`TENSOR_FIELDS` (tensors or arrays) and ``faces`` / ``normals`` (None to leave
+        out).
 
     Returns
     -------
@@ -46,7 +48,8 @@ def save_npz(path: str | os.PathLike, fields: dict[str, Any]) -> Path:
     p = Path(path)
     if p.suffix != ".npz":
         p = p.with_name(p.name + ".npz")
-    arrays = {"version": np.array(NPZ_VERSION), "orient": np.array(fields["orient"])}
+    arrays = {"version": np.array(NPZ_VERSION), "orient": np.array(fields["orient"]),
+              "numpy_io": np.array(bool(fields.get("numpy_io", False)))}
     arrays.update({name: fields[name] for name in TENSOR_FIELDS})
     arrays.update({name: fields[name] for name in _OPTIONAL if fields[name] is not None})
     out = {
@@ -67,7 +70,8 @@ def load_npz(path: str | os.PathLike) -> dict[str, Any]:
     Returns
     -------
     dict
-        ``orient`` (str), ``info`` (empty dict), every tensor field as a torch tensor and
+        ``orient`` (str), ``numpy_io`` (bool), ``info`` (empty dict), every tensor field as a
+        torch tensor and
         ``faces`` / ``normals`` (None when absent): the keyword arguments of
         :class:`polygeo.patches.PatchSet`.
 
@@ -97,5 +101,5 @@ def load_npz(path: str | os.PathLike) -> dict[str, Any]:
 
     out: dict[str, Any] = {name: tensor(name) for name in TENSOR_FIELDS}
     out.update({name: tensor(name) if name in d else None for name in _OPTIONAL})
-    out.update(orient=str(d["orient"]), info={})
+    out.update(orient=str(d["orient"]), numpy_io=bool(d.get("numpy_io", False)), info={})
     return out

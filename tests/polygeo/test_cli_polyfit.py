@@ -48,7 +48,7 @@ def test_polyfit_command_writes_patches_mesh_and_summary(tmp_path, sheet_ply, ca
     assert summary["chamfer_surface"] < summary["chamfer_dense"] < summary["chamfer"]
     # the resampled mesh is what the set evaluates to
     rv, _ = ps.resample(1)
-    np.testing.assert_allclose(res.points, rv.numpy(), atol=1e-6)
+    np.testing.assert_allclose(res.points, rv, atol=1e-6)
 
 
 @pytest.mark.slow

@@ -47,9 +47,8 @@ def test_single_patch_polynomial_height_is_exact():
     ps = PatchSet.fit(v, f, n_patches=1, order=4)
     assert ps.n_patches == 1 and int(ps.status[0]) == Status.OK
     assert _rmse(ps) < 1e-13
-    np.testing.assert_allclose(ps.fitted_vertices().numpy(), v, atol=1e-12)
+    np.testing.assert_allclose(ps.fitted_vertices(), v, atol=1e-12)
     rv, rf = ps.resample(2)
-    rv = rv.numpy()
     want = 0.1 * rv[:, 0] ** 2 - 0.05 * rv[:, 1] ** 2 + 0.03 * rv[:, 0] ** 2 * rv[:, 1] ** 2
     want -= 0.02 * rv[:, 1] ** 4
     np.testing.assert_allclose(rv[:, 2], want, atol=1e-12)
@@ -59,7 +58,7 @@ def test_single_patch_polynomial_height_is_exact():
     for order in (1, 2, 4):
         pf = PatchSet.fit(flat, f, n_patches=1, order=order)
         assert _rmse(pf) < 1e-13
-        np.testing.assert_allclose(pf.fitted_vertices().numpy(), flat, atol=1e-12)
+        np.testing.assert_allclose(pf.fitted_vertices(), flat, atol=1e-12)
 
 
 def test_convergence_with_order_and_patch_count(sphere5):
@@ -92,7 +91,7 @@ def test_analytic_meshes_converge_and_resample_onto_the_surface(name):
     ps = PatchSet.fit(m.points, m.faces, partition=part, order=4)
     e4 = _rmse(ps)
     assert e4 < 0.2 * e2, (e2, e4)
-    rv = ps.resample(1)[0].numpy()
+    rv = ps.resample(1)[0]
     if name == "torus":
         rho = np.hypot(rv[:, 0], rv[:, 1])
         dist = np.abs(np.hypot(rho - 1.0, rv[:, 2]) - 0.3)
@@ -128,11 +127,11 @@ def test_sphere_geometry_matches_analytic(sphere5):
 def test_resample_is_watertight_and_consistent(sphere5):
     ps = PatchSet.fit(sphere5.points, sphere5.faces, n_patches=30, order=3)
     rv0, rf0 = ps.resample(0)
-    torch.testing.assert_close(rv0, ps.fitted_vertices())
+    np.testing.assert_allclose(rv0, ps.fitted_vertices(), rtol=0, atol=1e-15)
     np.testing.assert_array_equal(rf0, sphere5.faces)
     rv, rf = ps.resample(2)
     assert rf.shape == (16 * len(sphere5.faces), 3)
-    mesh = trimesh.Trimesh(rv.numpy(), rf, process=False)
+    mesh = trimesh.Trimesh(rv, rf, process=False)
     assert mesh.is_watertight and mesh.is_winding_consistent
     # an open sheet keeps its boundary: 2^R boundary edges per input boundary edge
     w = syn.wavy_sheet_mesh(20, 20)
@@ -257,7 +256,8 @@ def test_gradcheck_evaluate_wrt_coefficients_and_orientation():
 
 
 def test_resample_is_differentiable_wrt_coefficients(sphere5):
-    ps = PatchSet.fit(sphere5.points, sphere5.faces, n_patches=6, order=2)
+    ps = PatchSet.fit(torch.from_numpy(sphere5.points), torch.from_numpy(sphere5.faces),
+                      n_patches=6, order=2)
     c = ps.coeffs.clone().requires_grad_()
     ps2 = PatchSet(**{**ps.__dict__, "coeffs": c})
     rv, _ = ps2.resample(1)
@@ -311,7 +311,7 @@ def test_point_cloud_fit_and_grid_resample():
     assert met.normal_error.max() < 0.5
     rv, rf = ps.resample(0, grid=5)
     assert rf.shape == (20 * 2 * 4 * 4, 3)
-    np.testing.assert_allclose(np.linalg.norm(rv.numpy(), axis=1), 1.0, atol=5e-3)
+    np.testing.assert_allclose(np.linalg.norm(rv, axis=1), 1.0, atol=5e-3)
 
 
 def test_optimize_orientation_is_never_worse_than_pca():
@@ -336,8 +336,8 @@ def test_save_load_roundtrip(tmp_path, sphere5):
     for name in ("scale", "rotation", "translation", "coeffs", "orders", "uv", "mask", "index",
                  "labels", "faces", "boundary_pairs"):
         assert torch.equal(getattr(ps, name), getattr(back, name)), name
-    assert back.orient == ps.orient
-    torch.testing.assert_close(back.resample(1)[0], ps.resample(1)[0])
+    assert back.orient == ps.orient and back.numpy_io and ps.numpy_io
+    np.testing.assert_allclose(back.resample(1)[0], ps.resample(1)[0], rtol=0, atol=1e-15)
     with pytest.raises(FileNotFoundError):
         PatchSet.load(tmp_path / "missing.npz")
     np.savez(tmp_path / "other.npz", a=np.zeros(3))
@@ -385,7 +385,7 @@ def test_too_few_points_per_patch_is_flagged_not_nan():
     assert int(ps.orders[0]) < 6
     assert int(ps.status[0]) in (Status.ORDER_REDUCED, Status.TOO_FEW_POINTS)
     assert torch.isfinite(ps.coeffs).all()
-    assert np.isfinite(ps.resample(1)[0].numpy()).all()
+    assert np.isfinite(ps.resample(1)[0]).all()
 
 
 def test_several_components_nonmanifold_and_degenerate_faces():
@@ -487,9 +487,73 @@ def test_order_cap_keeps_small_patches_from_swinging():
     g_cap = capped.metrics().summary()["boundary_gap_max"]
     assert g_cap < 0.75 * g_free, (g_cap, g_free)
     c = [
-        chamfer_distance(v, f, ps.resample(1)[0].numpy(), ps.resample(1)[1], mode="surface")
+        chamfer_distance(v, f, *ps.resample(1), mode="surface")
         for ps in (free, capped)
     ]
     assert c[1] < c[0]
     with pytest.raises(ValueError, match="min_points_per_coeff"):
         PatchSet.fit(v, f, partition=part, min_points_per_coeff=-1)
+
+
+# ------------------------------------------------------------------ array types follow the input
+
+
+def _kinds(*arrays):
+    return {"numpy" if isinstance(a, np.ndarray) else "torch" if torch.is_tensor(a) else
+            type(a).__name__ for a in arrays}
+
+
+@pytest.mark.parametrize("cloud", [False, True], ids=["mesh", "cloud"])
+def test_every_output_array_follows_the_input_type(cloud):
+    # issue 17: resample returned torch vertices with NumPy faces; one type per call now
+    s = syn.sphere_mesh(2)
+    faces = None if cloud else s.faces
+    ref = {}
+    for as_torch in (False, True):
+        pts = torch.from_numpy(s.points) if as_torch else s.points
+        f = None if faces is None else (torch.from_numpy(faces) if as_torch else faces)
+        ps = PatchSet.fit(pts, f, n_patches=4, order=2)
+        want = {"torch" if as_torch else "numpy"}
+        assert ps.numpy_io is (not as_torch)
+        rv, rf = ps.resample(1)
+        assert _kinds(rv, rf) == want
+        assert rv.dtype in (np.float64, torch.float64) and rf.dtype in (np.int64, torch.int64)
+        assert _kinds(ps.fitted_vertices()) == want
+        uv = np.zeros((3, 2))
+        idx = np.array([0, 1, 2])
+        q = (torch.from_numpy(uv), torch.from_numpy(idx)) if as_torch else (uv, idx)
+        assert _kinds(ps.evaluate(q[1], q[0]), ps.normals_at(q[1], q[0])) == want
+        p3 = torch.from_numpy(s.points[:3]) if as_torch else s.points[:3]
+        assert _kinds(ps.project(p3, q[1])) == want
+        if as_torch:  # torch results stay differentiable w.r.t. the set's tensors
+            c = ps.coeffs.clone().requires_grad_()
+            PatchSet(**{**ps.__dict__, "coeffs": c}).resample(1)[0].sum().backward()
+            assert c.grad.abs().sum() > 0
+        # same surface whatever the input type
+        if as_torch:
+            np.testing.assert_allclose(rv.detach().numpy(), ref["v"], rtol=0, atol=1e-12)
+            np.testing.assert_array_equal(rf.numpy(), ref["f"])
+        else:
+            ref.update(v=rv, f=rf)
+
+
+def test_saved_set_keeps_its_array_type(tmp_path, sphere5):
+    t = PatchSet.fit(torch.from_numpy(sphere5.points), torch.from_numpy(sphere5.faces),
+                     n_patches=8, order=2)
+    back = PatchSet.load(t.save(tmp_path / "t"))
+    assert not back.numpy_io and _kinds(*back.resample(0)) == {"torch"}
+    # a file of an older version (no numpy_io) reads as torch, as before
+    with np.load(tmp_path / "t.npz") as z:
+        old = {k: z[k] for k in z.files if k != "numpy_io"}
+    np.savez(tmp_path / "old.npz", **old)
+    assert _kinds(*PatchSet.load(tmp_path / "old.npz").resample(0)) == {"torch"}
+
+
+def test_resampling_stages_return_torch_only(sphere5):
+    from polygeo.patches.resampling import resample_grid, resample_subdivided
+
+    ps = PatchSet.fit(torch.from_numpy(sphere5.points), torch.from_numpy(sphere5.faces),
+                      n_patches=8, order=2)
+    for out in (resample_subdivided(*ps._patches(), ps.labels, ps.vertices, ps.faces, 1),
+                resample_grid(*ps._patches(), ps.domain, 3)):
+        assert _kinds(*out) == {"torch"} and out[1].dtype == torch.int64

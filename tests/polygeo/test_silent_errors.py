@@ -39,7 +39,7 @@ def test_polyfit_torus_same_relative_error_at_every_scale():
     for scale in (1e-3, 1.0, 1e3):
         ps = PatchSet.fit(v * scale, f)
         rv, _ = ps.resample(2)  # between the vertices, where spikes and fins show
-        e = _off_torus(rv.detach().numpy(), scale)
+        e = _off_torus(rv, scale)
         errs.append((np.median(e), e.max()))
         counts.append(ps.n_patches)
     assert counts[0] == counts[1] == counts[2]
