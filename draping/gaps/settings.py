@@ -1,0 +1,212 @@
+"""Settings of the GAPS model and of its self-supervised training (dataclasses, JSON-able).
+
+Part of :mod:`draping.gaps`; import from there.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+from polygeo.checks import check_choice, check_int, check_positive
+
+__all__ = [
+    "METHODS",
+    "INEXTENSIBILITY",
+    "POSE_BONES",
+    "TRAIN_MOTIONS",
+    "HELD_OUT_MOTIONS",
+    "GapsSettings",
+    "TrainSettings",
+]
+
+#: Methods of :class:`GapsSettings`: GAPS, and the SNUG-like and NCS-like baselines.
+METHODS = ("gaps", "snug", "ncs")
+
+#: ``GapsSettings.inextensibility``: ``"schedule"`` (eq. (44) with the collision-aware
+#: ``k_ext`` of eq. (45)), ``"one"`` (eq. (44) with ``k_ext = 1``), ``"none"`` (no L_inext);
+#: ``"auto"`` is ``"schedule"`` for GAPS and ``"none"`` for the baselines.
+INEXTENSIBILITY = ("auto", "schedule", "one", "none")
+
+#: Bones whose rotations the model reads (the ones the procedural motions drive, feet
+#: excepted): the five spine segments, the neck, hips, knees, shoulders and elbows of Anny.
+POSE_BONES = (
+    "spine05", "spine04", "spine03", "spine02", "spine01", "neck01",
+    "upperleg01.L", "upperleg01.R", "lowerleg01.L", "lowerleg01.R",
+    "upperarm01.L", "upperarm01.R", "lowerarm01.L", "lowerarm01.R",
+)
+
+#: Procedural motions trained on (``random`` with seeds below 1000).
+TRAIN_MOTIONS = ("walk", "arms", "squat", "jacks", "random")
+#: Held back from training: the ``turn`` motion, ``random`` with seeds >= 1000, and body shapes
+#: drawn with seeds >= 1000 (see :func:`draping.gaps.held_out_cases`).
+HELD_OUT_MOTIONS = ("turn",)
+
+
+@dataclass(frozen=True)
+class GapsSettings:
+    """The model of one garment (GAPS eq. (37)) and the method it is trained as.
+
+    Attributes
+    ----------
+    garment : str
+        A garment of :data:`draping.garments.GARMENTS` (the shipped 5,000-vertex template).
+    garment_file : str or None
+        An OBJ/PLY garment in the rest pose of the default body shape (metres); replaces
+        ``garment``.
+    method : {"gaps", "snug", "ncs"}
+        ``gaps``: RBF body-participation skinning (thesis eq. (34)-(36)), GAPS bending
+        (eq. (41)) and covariance inextensibility; ``snug``: nearest-body-vertex skinning,
+        dihedral bending against a flat rest state (eq. (17)), no inextensibility; ``ncs``:
+        as ``snug`` with Laplacian-smoothed skinning weights.
+    inextensibility : str
+        One of :data:`INEXTENSIBILITY` (the ablations of Tables 4.2-4.3).
+    width, depth : int
+        GRU hidden size and number of layers (the paper: 256 x 4).
+    rank : int
+        Size of the linear output basis: the GRU output goes through ``width -> rank`` and a
+        learnt basis ``rank -> 3 V`` (``rank = 0``: one ``width -> 3 V`` layer). Keeps the file
+        small and the per-frame cost at ``rank * 3 V`` multiply-adds.
+    top_bones : int
+        Skinning weights kept per garment vertex (the largest, renormalised).
+    """
+
+    garment: str = "tshirt"
+    garment_file: str | None = None
+    method: str = "gaps"
+    inextensibility: str = "auto"
+    width: int = 128
+    depth: int = 2
+    rank: int = 64
+    top_bones: int = 6
+
+    def __post_init__(self) -> None:
+        check_choice(self.method, "method", METHODS)
+        check_choice(self.inextensibility, "inextensibility", INEXTENSIBILITY)
+        check_int(self.width, "width", low=1, high=4096)
+        check_int(self.depth, "depth", low=1, high=16)
+        check_int(self.rank, "rank", low=0, high=4096)
+        check_int(self.top_bones, "top_bones", low=1, high=32)
+        if self.garment_file is None:
+            from draping.garments import GARMENTS
+
+            check_choice(self.garment, "garment", GARMENTS)
+
+    @property
+    def skinning(self) -> str:
+        """Skinning of the method: ``rbf`` (gaps), ``nearest`` (snug), ``laplacian`` (ncs)."""
+        return {"gaps": "rbf", "snug": "nearest", "ncs": "laplacian"}[self.method]
+
+    @property
+    def inext_mode(self) -> str:
+        """``"schedule"``, ``"one"`` or ``"none"`` (``"auto"`` resolved by the method)."""
+        if self.inextensibility == "auto":
+            return "schedule" if self.method == "gaps" else "none"
+        return self.inextensibility
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """Self-supervised training of a :class:`GapsSettings` model (the run's fingerprint).
+
+    A step draws one body shape from a pool of ``shapes`` random phenotype vectors (seeded;
+    each with the garment carried over to it by :func:`draping.garments.fit_garment_to_shape`,
+    whose rest geometry is the strain reference), ``batch`` windows of ``window`` consecutive
+    frames from the training motions, runs the GRU over each window from a random hidden
+    state, skins, and minimises eq. (46) summed over the frames (inertia, eq. (42), on the
+    frames that have two predecessors in the window).
+
+    Attributes
+    ----------
+    model : GapsSettings
+    steps : int
+        Optimiser steps.
+    batch : int
+        Windows per step.
+    window : int
+        Frames per window (>= 3 so that inertia applies).
+    lr, lr_late : float
+        Adam learning rate for the first ``lr_epochs`` epochs, then after (the paper: 1e-3
+        for 10 epochs, then 1e-4).
+    lr_epochs : int
+    epoch_steps : int
+        Steps per "epoch" of the schedules (learning rate and ``k_ext``, eq. (45)).
+    shapes : int
+        Training body shapes (drawn with ``seed``; held-out shapes use seeds >= 1000).
+    motion_frames : int
+        Frames of each training motion sequence (30 fps).
+    speeds : tuple of float
+        Playback speeds of the deterministic training motions (augmentation).
+    random_motions : int
+        Seeded ``random`` motions in the training set (seeds ``0 .. random_motions - 1``).
+    hidden_std : float
+        Standard deviation of the random initial hidden state (training only).
+    collision_stiffness : float
+        ``k_c`` of eq. (40) (J/m^3).
+    collision_eps : float
+        Clearance ``epsilon`` of eq. (40) (m), relative to the full Anny body.
+    inext_weight : float
+        ``k_i`` of eq. (44).
+    query_radius : float
+        Body distance queries stop at this distance (m): farther vertices cannot collide.
+    seed : int
+    checkpoint_every : int
+        Steps between checkpoints.
+    """
+
+    model: GapsSettings = field(default_factory=GapsSettings)
+    steps: int = 3000
+    batch: int = 4
+    window: int = 3
+    lr: float = 1e-3
+    lr_late: float = 1e-4
+    lr_epochs: int = 10
+    epoch_steps: int = 60
+    shapes: int = 48
+    motion_frames: int = 90
+    speeds: tuple = (0.75, 1.0, 1.3)
+    random_motions: int = 12
+    hidden_std: float = 0.5
+    collision_stiffness: float = 1e4
+    collision_eps: float = 2e-3
+    inext_weight: float = 2e8
+    query_radius: float = 0.05
+    seed: int = 0
+    checkpoint_every: int = 100
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.model, GapsSettings):
+            raise TypeError(f"model: expected GapsSettings, got {type(self.model).__name__}")
+        check_int(self.steps, "steps", low=0)
+        check_int(self.batch, "batch", low=1)
+        check_int(self.window, "window", low=3)
+        check_int(self.lr_epochs, "lr_epochs", low=0)
+        check_int(self.epoch_steps, "epoch_steps", low=1)
+        check_int(self.shapes, "shapes", low=1)
+        check_int(self.motion_frames, "motion_frames", low=self.window)
+        check_int(self.random_motions, "random_motions", low=0)
+        check_int(self.seed, "seed")
+        check_int(self.checkpoint_every, "checkpoint_every", low=1)
+        for name in ("lr", "lr_late", "collision_stiffness", "inext_weight", "query_radius"):
+            check_positive(getattr(self, name), name)
+        for name in ("hidden_std", "collision_eps"):
+            check_positive(getattr(self, name), name, strict=False)
+        if not self.speeds or not all(math.isfinite(s) and s > 0 for s in self.speeds):
+            raise ValueError(f"speeds: expected positive playback speeds, got {self.speeds}")
+
+    def replace(self, **changes) -> TrainSettings:
+        """A copy with some fields changed (``model`` fields by their own names too)."""
+        model_fields = {f.name for f in dataclasses.fields(GapsSettings)}
+        mchanges = {k: changes.pop(k) for k in list(changes) if k in model_fields}
+        model = dataclasses.replace(self.model, **mchanges) if mchanges else self.model
+        return dataclasses.replace(self, model=model, **changes)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TrainSettings:
+        """Inverse of ``dataclasses.asdict``."""
+        d = dict(d)
+        model = GapsSettings(**d.pop("model"))
+        if "speeds" in d:
+            d["speeds"] = tuple(d["speeds"])
+        return cls(model=model, **d)

@@ -1,0 +1,88 @@
+"""``polygeo train-drape`` and ``polygeo drape``: help, bad input (one line, exit 2), a short
+training run that resumes, and a drape with the model it wrote."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from polygeo.cli import build_parser, main
+
+
+def _help(name: str) -> str:
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command")
+    return sub.choices[name].format_help()
+
+
+def test_help_documents_options_and_units():
+    t = _help("train-drape")
+    for opt in ("--method", "--garment", "--garment-file", "--minutes", "--steps", "--seed",
+                "--resume", "-o", "--width", "--depth", "--rank", "--inextensibility"):
+        assert opt in t, opt
+    for word in ("minutes", "snug", "ncs", "held", "eps_c", "CPU"):
+        assert word in t, word
+    d = _help("drape")
+    for opt in ("--method", "--model", "--garment", "--garment-file", "--motion",
+                "--motion-file", "--frames", "--shape", "--seed", "--reference", "-o"):
+        assert opt in d, opt
+    for word in ("metres", "radians", "[0, 1]", "cm", "degrees", "ms per frame"):
+        assert word in d, word
+
+
+def _fails(capsys, argv) -> str:
+    status = main(argv)
+    err = capsys.readouterr().err
+    assert status == 2
+    assert "Traceback" not in err
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+def test_bad_drape_arguments(capsys, tmp_path):
+    o = ["-o", str(tmp_path / "o")]
+    assert "[0, 1]" in _fails(capsys, ["drape", "--shape", "age=1.5", *o])
+    assert "--frames" in _fails(capsys, ["drape", "--frames", "0", *o])
+    assert "--model" in _fails(capsys, ["drape", "--method", "snug", *o])
+    assert "skirt" in _fails(capsys, ["drape", "--garment", "skirt", *o])
+
+
+def test_nan_motion_file(capsys, tmp_path, monkeypatch):
+    rot = np.zeros((4, 104, 3))
+    rot[2, 5, 1] = np.nan
+    p = tmp_path / "m.npz"
+    np.savez(p, rotations=rot, translation=np.zeros((4, 3)))
+    line = _fails(capsys, ["drape", "--motion-file", str(p), "--model", "tshirt",
+                           "-o", str(tmp_path / "o")])
+    assert "NaN" in line or "nan" in line.lower()
+
+
+@pytest.mark.slow
+def test_train_resume_and_drape(tmp_path, capsys):
+    run = tmp_path / "run"
+    args = ["train-drape", "--garment", "tshirt", "--width", "8", "--depth", "1", "--rank",
+            "4", "--batch", "1", "--eval-frames", "3", "--quiet", "-o", str(run)]
+    assert main([*args, "--steps", "2"]) == 0
+    rec = json.loads((run / "model.json").read_text())
+    assert rec["training"]["steps"] == 2
+    assert set(rec["held_out"]["mean"]) == {"eps_e", "eps_a", "eps_c"}
+    assert main([*args, "--steps", "3", "--resume"]) == 0
+    log = [json.loads(s) for s in (run / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in log] == [0, 1, 2]
+    capsys.readouterr()
+    out = tmp_path / "drape"
+    assert main(["drape", "--model", str(run / "model.pt"), "--garment", "tshirt", "--frames",
+                 "3", "--shape", "age=0.66,gender=0.8", "--no-pictures", "--quiet",
+                 "-o", str(out)]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert len(m["per_frame"]) == 3
+    for k in ("eps_e", "eps_a", "eps_c", "ms_per_frame"):
+        assert k in m["mean"]
+    assert (out / "meshes" / "000002.ply").is_file() and (out / "body" / "000000.ply").is_file()
+    # the model refuses another garment
+    line = _fails(capsys, ["drape", "--model", str(run / "model.pt"), "--garment", "dress",
+                           "-o", str(out)])
+    assert "trained for garment" in line
