@@ -8,7 +8,9 @@ sequence (:func:`summarize`):
 - ``eps_c`` (GAPS): % of garment vertices inside the body, from signed distances (negative
   inside) given by the caller's body query;
 - ``e_dist`` (GarNet eq. (7)): mean vertex-to-vertex distance to a reference drape, in cm;
-- ``e_norm`` (GarNet section 4.1): mean angle between corresponding face normals, in degrees.
+- ``e_norm`` (GarNet section 4.1): mean angle between corresponding face normals, in degrees;
+- ``e_3D`` (FNOpt, thesis section 6.3): ``||X - X_ref||_F / ||X_ref - mean(X_ref)||_F``, a
+  relative vertex error (dimensionless) that depends neither on the unit nor on the origin.
 
 Lengths come from :mod:`polygeo.mesh`. Torch in, torch out; NumPy in, NumPy out.
 """
@@ -29,6 +31,7 @@ __all__ = [
     "collision_error",
     "distance_error",
     "normal_error",
+    "relative_vertex_error",
     "drape_metrics",
     "summarize",
 ]
@@ -209,6 +212,45 @@ def normal_error(x: Any, reference: Any, faces: Any) -> Any:
     ok = (na.valid & nb.valid).to(xt.dtype)
     ang = torch.rad2deg(torch.arccos(cos)) * ok
     return _out(ang.sum(-1) / ok.sum(-1).clamp_min(1.0), numpy_in)
+
+
+def relative_vertex_error(x: Any, reference: Any) -> Any:
+    """``e_3D``: ``||X - X_ref||_F / ||X_ref - mean(X_ref)||_F`` per frame (dimensionless).
+
+    The Frobenius norm of the vertex differences over that of the reference's vertices about
+    their centroid: invariant to the length unit and to a common translation of both.
+
+    Parameters
+    ----------
+    x : (..., V, 3) float
+        Positions (any length unit).
+    reference : (..., V, 3) float
+        Reference positions with the same vertices, same unit (broadcast over frames).
+
+    Returns
+    -------
+    (...) float
+        Relative error per frame, in float64 (0 for identical meshes).
+
+    Raises
+    ------
+    ValueError
+        Shapes that do not match, non-finite values, or a reference whose vertices all coincide
+        (its spread is zero, so no relative error exists).
+    TypeError
+        Non-floating positions.
+    """
+    xt, numpy_in = _positions(x, "x")
+    rt, _ = _positions(reference, "reference")
+    if rt.shape[-2] != xt.shape[-2]:
+        raise ValueError(f"reference: expected {xt.shape[-2]} vertices, got {rt.shape[-2]}")
+    xt, rt = xt.double(), rt.double()
+    spread = torch.linalg.norm((rt - rt.mean(-2, keepdim=True)).flatten(-2), dim=-1)
+    if bool((spread <= 0).any()):
+        raise ValueError("reference: expected vertices with a non-zero spread about their "
+                         "centroid, got all vertices at one point")
+    num = torch.linalg.norm((xt - rt).flatten(-2), dim=-1)
+    return _out(num / spread, numpy_in)
 
 
 def drape_metrics(

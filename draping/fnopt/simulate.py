@@ -2,8 +2,8 @@
 
 Metrics per frame: ``e_CD`` (``polygeo.proximity.chamfer_distance`` with 10 000 area-uniform
 samples per surface, both meshes normalised by the reference's unit sphere, times 1e3),
-``e_3D`` (``||X - X_ref||_F / ||X_ref - mean(X_ref)||_F``, a relative vertex error that does not
-depend on where the origin is), ``L_cloth`` (J) and milliseconds per frame of the optimiser.
+``e_3D`` (:func:`draping.metrics.relative_vertex_error`), ``L_cloth`` (J) and milliseconds per
+frame of the optimiser.
 """
 
 from __future__ import annotations
@@ -16,11 +16,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..metrics import relative_vertex_error
 from . import cloth
 from .handles import DT, check_motion
 from .solvers import CLASSICAL, REFERENCE_TOL, Rollout, rollout, solve_reference
 
-__all__ = ["SimSettings", "OPTIMIZERS", "DEFAULT_LR", "step_function", "run", "e_cd", "e_3d",
+__all__ = ["SimSettings", "OPTIMIZERS", "DEFAULT_LR", "step_function", "run", "e_cd",
            "frame_metrics", "reference_rollout", "write_outputs"]
 
 #: Optimisers of ``polygeo simulate``.
@@ -132,13 +133,6 @@ def e_cd(x: torch.Tensor, x_ref: torch.Tensor, faces: np.ndarray, faces_ref: np.
         np.asarray(x, dtype=np.float64).reshape(-1, 3), faces, n_samples=10000, seed=seed))
 
 
-def e_3d(x: torch.Tensor, x_ref: torch.Tensor) -> float:
-    """``||X - X_ref||_F / ||X_ref - mean(X_ref)||_F`` (same vertex order)."""
-    a = torch.as_tensor(x, dtype=torch.float64).reshape(-1, 3)
-    b = torch.as_tensor(x_ref, dtype=torch.float64).reshape(-1, 3)
-    return float((a - b).norm() / (b - b.mean(0)).norm().clamp(min=1e-30))
-
-
 def frame_metrics(ro: Rollout, ref: Rollout, every: int = 1) -> dict:
     """Per-frame e_CD, e_3D (frames 1, 1 + every, ...) of a rollout against its reference."""
     h, w = ro.positions.shape[1:3]
@@ -148,7 +142,9 @@ def frame_metrics(ro: Rollout, ref: Rollout, every: int = 1) -> dict:
     frames = list(range(1, ro.positions.shape[0], every))
     same = (h, w) == (hr, wr)
     cd = [e_cd(ro.positions[k], ref.positions[k], f, fr) for k in frames]
-    e3 = [e_3d(ro.positions[k], ref.positions[k]) if same else float("nan") for k in frames]
+    e3 = [float(relative_vertex_error(ro.positions[k].reshape(-1, 3),
+                                      ref.positions[k].reshape(-1, 3)))
+          if same else float("nan") for k in frames]
     return {"frames": frames, "e_cd": cd, "e_3d": e3}
 
 

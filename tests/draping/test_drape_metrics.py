@@ -92,3 +92,37 @@ def test_metrics_reject_bad_input():
         M.distance_error(np.full((4, 3), np.inf), SQUARE_V)
     with pytest.raises(ValueError, match="reference"):
         M.normal_error(SQUARE_V, SQUARE_V[:2], SQUARE_F)
+
+
+def test_relative_vertex_error_hand_values_and_invariances():
+    rng = np.random.default_rng(3)
+    ref = rng.normal(size=(50, 3))
+    c = ref.mean(0)
+    # scaling about the centroid by 1.01: ||0.01 (ref - c)|| / ||ref - c|| = 0.01
+    assert float(M.relative_vertex_error(c + 1.01 * (ref - c), ref)) == pytest.approx(0.01,
+                                                                                     rel=1e-12)
+    d = rng.normal(size=(50, 3))
+    want = np.linalg.norm(d) / np.linalg.norm(ref - c)      # independent formula
+    got = M.relative_vertex_error(ref + d, ref)
+    assert isinstance(got, np.ndarray) and float(got) == pytest.approx(want, rel=1e-12)
+    # same value after a common translation and a change of unit (m -> mm)
+    t = np.array([5.0, -2.0, 7.0])
+    assert float(M.relative_vertex_error(1e3 * (ref + d + t), 1e3 * (ref + t))) == \
+        pytest.approx(want, rel=1e-9)
+    # batched frames, torch in -> torch out, broadcast reference
+    x = torch.tensor(np.stack([ref, ref + d]))
+    out = M.relative_vertex_error(x, torch.tensor(ref))
+    assert isinstance(out, torch.Tensor) and out.shape == (2,)
+    np.testing.assert_allclose(out.numpy(), [0.0, want], rtol=1e-12, atol=1e-15)
+
+
+def test_relative_vertex_error_rejects_bad_input():
+    v = np.random.default_rng(0).normal(size=(6, 3))
+    with pytest.raises(ValueError, match="reference"):
+        M.relative_vertex_error(v, v[:5])
+    with pytest.raises(ValueError, match="reference"):
+        M.relative_vertex_error(v, np.ones((6, 3)))          # no spread
+    with pytest.raises(ValueError, match="x"):
+        M.relative_vertex_error(np.full((6, 3), np.nan), v)
+    with pytest.raises(TypeError, match="x"):
+        M.relative_vertex_error("grid", v)
