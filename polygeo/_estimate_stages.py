@@ -124,6 +124,9 @@ class Neighbourhoods:
         radius = settings.radius
         self.upper = np.inf if radius is None else np.nextafter(radius, np.inf) * (1 + 1e-12)
         self.graph = np.full((n if graph else 0, min(6, self.k_query)), -1, dtype=np.int64)
+        #: ``k="auto"``: each point's own size choice once computed (-1: not yet), so that
+        #: the pooling sees every neighbour's choice whatever the chunks
+        self.auto_counts: np.ndarray | None = None
 
     def chunks(self, batch_size: int, progress: bool | None):
         """Finite query points in chunks of at most ``batch_size``, in grid-cell order.
@@ -165,11 +168,20 @@ class Neighbourhoods:
             self.graph[q, : min(k_graph, nbr.shape[1])] = nbr[:, :k_graph]
         return nbr, dist
 
+    def query_more(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(nbr, dist)`` of extra points ``q`` (no orientation graph, no merging)."""
+        if self.ring is not None:
+            return self.ring[0][q], self.ring[1][q]
+        wk = self.workers if q.size >= PARALLEL_MIN else 1
+        return self.index.query(self.P[q], self.k_query, workers=wk, upper=self.upper,
+                                self_index=self.source[q])
+
     def _merge_duplicates(self) -> None:
         """Keep one copy per location in the tree; answer all copies as that one."""
         P, finite = self.P, self.finite
         n = P.shape[0]
         self.deduped = True
+        self.auto_counts = None  # choices made on the tree with duplicates are stale
         self.source = _representatives(P, finite)
         Pt = P.copy()
         Pt[self.source != np.arange(n)] = np.nan
@@ -249,17 +261,34 @@ def choose_sizes_auto_k(hoods: Neighbourhoods, q, nbr, dist, *, order: int,
 
     Per point, the size chosen by the confidence-interval rule of
     :func:`polygeo._estimate_numba.auto_k_counts` at jets of ``order``; the per-point choices
-    are noisy, so each point then takes the geometric median choice of its nearest neighbours
-    in the chunk (:func:`smooth_sizes`).
+    are noisy, so each point then takes the geometric median choice of its
+    ``AUTO_K_SMOOTH`` nearest neighbours (:func:`smooth_sizes`). The neighbours' own choices
+    are computed where the chunk lacks them and kept (``hoods.auto_counts``), so the result
+    of a point does not depend on the chunks (nor on the tiles of :mod:`polygeo.tiling`).
     """
     sizes = np.array(sorted({min(c, nbr.shape[1]) for c in settings.sizes}), dtype=np.int64)
     m = jets.n_coeffs(order)
     kframe = int(min(sizes, key=lambda c: abs(int(c) - 4 * m)))
     jet = jet_settings(order, gaussian=False, max_cond=float(settings.max_cond[order]),
                        interpolate=settings.interpolate)
-    counts = auto_k_counts(hoods.hoods(q, nbr, dist, None), jet, sizes=sizes, kframe=kframe,
-                           gamma=AUTO_K_GAMMA, min_dof=3 * m)
-    return smooth_sizes(q, counts, nbr, hoods.P.shape[0], AUTO_K_SMOOTH)
+
+    def counts_of(rows, rnbr, rdist):
+        return auto_k_counts(hoods.hoods(rows, rnbr, rdist, None), jet, sizes=sizes,
+                             kframe=kframe, gamma=AUTO_K_GAMMA, min_dof=3 * m)
+
+    if hoods.auto_counts is None:
+        hoods.auto_counts = np.full(hoods.P.shape[0], -1, dtype=np.int64)
+    cache = hoods.auto_counts
+    new = cache[q] < 0
+    if new.any():
+        cache[q[new]] = counts_of(q[new], nbr[new], dist[new])
+    # the pooled neighbours outside the chunk: their own neighbourhoods and choices
+    pool = nbr[:, : max(AUTO_K_SMOOTH, 1)]
+    more = np.unique(pool[pool >= 0])
+    more = more[cache[more] < 0]
+    if more.size:
+        cache[more] = counts_of(more, *hoods.query_more(more))
+    return smooth_sizes(cache, nbr, AUTO_K_SMOOTH, own=cache[q])
 
 
 def fit_compiled(hoods: Neighbourhoods, q, nbr, dist, out: Quantities, *,
@@ -346,19 +375,18 @@ def fit_local(local: Local, order: int, weights: np.ndarray | None, max_cond: fl
     )
 
 
-def smooth_sizes(q: np.ndarray, chosen: np.ndarray, nbr: np.ndarray, n: int,
-                 k_smooth: int) -> np.ndarray:
+def smooth_sizes(chosen: np.ndarray, nbr: np.ndarray, k_smooth: int, *,
+                 own: np.ndarray) -> np.ndarray:
     """Rows of the k-NN list to use per query (pooled automatic choices).
 
-    The geometric median of the chosen sizes of its ``k_smooth`` nearest neighbours that
-    belong to the same chunk (itself included).
+    The geometric median of the chosen sizes (``chosen (N,)``, every point's own choice,
+    < 0 where unknown) of the query's ``k_smooth`` nearest neighbours, its own choice
+    ``own (Q,)`` in place of column 0.
     """
-    pos = np.full(n, -1, dtype=np.int64)
-    pos[q] = np.arange(q.size)
     nb_ = nbr[:, : max(k_smooth, 1)]
-    p_ = np.where(nb_ >= 0, pos[np.maximum(nb_, 0)], -1)
-    vals = np.where(p_ >= 0, np.log(np.maximum(chosen[np.maximum(p_, 0)], 1)), np.nan)
-    vals[:, 0] = np.log(np.maximum(chosen, 1))
+    c = np.where(nb_ >= 0, chosen[np.maximum(nb_, 0)], -1)
+    vals = np.where(c >= 0, np.log(np.maximum(c, 1)), np.nan)
+    vals[:, 0] = np.log(np.maximum(own, 1))
     med = np.exp(np.nanmedian(vals, axis=1))
     return np.clip(np.rint(med), 1, nbr.shape[1]).astype(np.int64)
 

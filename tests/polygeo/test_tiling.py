@@ -99,6 +99,26 @@ def test_halo_grows_until_neighbours_inside(tmp_path):
     assert max(r["halo"] for r in log) > tiling._initial_halo(plan, st)
 
 
+@pytest.mark.parametrize("case", ["borders", "duplicates"])
+def test_tiled_auto_k_equals_in_memory_whatever_the_chunks(tmp_path, case):
+    # k="auto" pools each point's size choice with its neighbours': the pooled choices must
+    # be the neighbours' own whatever chunk (in memory) or tile holds them
+    P = _cloud(case)
+    st = TileSettings(k="auto", k_candidates=(8, 16, 32, 64))
+    up = np.zeros_like(P)
+    up[:, 2] = 1.0
+    kw = dict(normals=up, orient="input", progress=False, **st.estimator_kwargs())
+    one = polygeo.differential_quantities(P, **kw)
+    assert np.unique(one.n_neighbors[one.status == Status.OK]).size > 1  # sizes vary
+    for batch in (97, 1000):  # many chunks, with borders between them
+        chunked = polygeo.differential_quantities(P, batch_size=batch, **kw)
+        for name in [*FIELDS, "n_neighbors"]:
+            np.testing.assert_array_equal(np.asarray(getattr(chunked, name)),
+                                          np.asarray(getattr(one, name)), err_msg=name)
+    res = jets_tiled(P, tmp_path / "run", st, tile_points=400, tiles=(4, 4), quiet=True)
+    _assert_same(res, one)
+
+
 def test_resume_after_interruption_gives_same_result(tmp_path, monkeypatch):
     P = _cloud("borders")
     st = TileSettings(k=K)
