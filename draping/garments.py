@@ -37,12 +37,21 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import scipy.sparse as sp
 import torch
 from scipy.spatial import ConvexHull, cKDTree
 
-from draping.garment_checks import check_garment, crossing_pairs, face_edges
+from draping.garment_checks import check_garment, crossing_pairs
+from draping.garment_fit import (
+    boundary_loops,
+    fit_to_body,
+    largest_component,
+    project_out,
+    remesh,
+    room,
+    wind_outward,
+)
 from polygeo.checks import check_choice, check_int
+from polygeo.mesh import vertex_normals
 
 __all__ = [
     "GARMENTS",
@@ -232,48 +241,8 @@ def _limb_t(b: _Body, part: str, points: np.ndarray) -> np.ndarray:
 # ------------------------------------------------------------------------------ mesh utils
 
 
-def _boundary_edges(f: np.ndarray) -> np.ndarray:
-    """Directed boundary edges (those whose reverse is not an edge of another face)."""
-    e = face_edges(f)
-    key = np.sort(e, 1)
-    _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    return e[cnt[inv.ravel()] == 1]
-
-
-def _adjacency(f: np.ndarray, n: int) -> sp.csr_matrix:
-    e = face_edges(f)
-    a = sp.csr_matrix(
-        (np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), (n, n)
-    )
-    a.data[:] = 1.0
-    return a
-
-
 def _extent(v: np.ndarray) -> float:
     return float(np.linalg.norm(v.max(0) - v.min(0)))
-
-
-def _largest_component(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The connected piece with most faces, unreferenced vertices removed."""
-    from scipy.sparse.csgraph import connected_components
-
-    if len(f) == 0:
-        raise ValueError("garment: the selected body region is empty")
-    _, lab = connected_components(_adjacency(f, len(v)), directed=False)
-    flab = lab[f[:, 0]]
-    keep = f[flab == np.bincount(flab).argmax()]
-    used = np.unique(keep)
-    remap = np.full(len(v), -1)
-    remap[used] = np.arange(len(used))
-    return v[used], remap[keep]
-
-
-def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    n = np.zeros_like(v)
-    for c in range(3):
-        np.add.at(n, f[:, c], fn)
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
 
 
 def _slice_keep(v: np.ndarray, f: np.ndarray, keep_vertex: np.ndarray) -> np.ndarray:
@@ -316,7 +285,7 @@ def _region(b: _Body, spec: GarmentSpec) -> tuple[np.ndarray, np.ndarray]:
                 keep &= ~leg | (_limb_t(b, f"leg.{side}", v) < spec.leg)
         else:
             keep &= np.zeros_like(keep)
-    return _largest_component(v, _slice_keep(v, b.faces, keep))
+    return largest_component(v, _slice_keep(v, b.faces, keep))
 
 
 def _hull_radius(points2: np.ndarray, centre: np.ndarray, angles: np.ndarray) -> np.ndarray:
@@ -392,194 +361,7 @@ def _grid_faces(index: np.ndarray) -> np.ndarray:
     return np.concatenate([np.stack([a, c, b], -1), np.stack([b, c, d], -1)]).reshape(-1, 3)
 
 
-def _loops(f: np.ndarray) -> list[np.ndarray]:
-    """Boundary loops as ordered vertex lists."""
-    be = _boundary_edges(f)
-    nxt = dict(zip(be[:, 0].tolist(), be[:, 1].tolist()))
-    loops, seen = [], set()
-    for s in be[:, 0].tolist():
-        if s in seen:
-            continue
-        loop, u = [], s
-        while u not in seen and u in nxt:
-            seen.add(u)
-            loop.append(u)
-            u = nxt[u]
-        loops.append(np.array(loop))
-    return loops
-
-
-# ------------------------------------------------------------------------------ remeshing
-
-
-def _remesh(
-    v: np.ndarray, f: np.ndarray, n_vertices: int, seed: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Even triangles by approximate centroidal Voronoi clustering (pyacvd), then cleaned."""
-    import pyacvd
-    import pyvista as pv
-
-    level = max(0, int(math.ceil(math.log(max(8.0 * n_vertices / len(f), 1.0), 4))))
-    mesh = pv.PolyData(v, np.hstack([np.full((len(f), 1), 3), f]).ravel())
-    clus = pyacvd.Clustering(mesh)
-    if level:
-        clus.subdivide(level)
-    np.random.seed(seed)  # noqa: NPY002 - pyacvd draws its seeds from NumPy's global state
-    clus.cluster(n_vertices)
-    out = clus.create_mesh()
-    rv = np.asarray(out.points, dtype=np.float64)
-    rf = np.asarray(out.faces).reshape(-1, 4)[:, 1:].astype(np.int64)
-    return _manifold(rv, rf)
-
-
-def _manifold(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Drop degenerate faces and faces on edges shared by more than two, keep one piece."""
-    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
-    for _ in range(10):
-        key = np.sort(face_edges(f), 1)
-        _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-        over = cnt[inv.ravel()].reshape(3, -1).max(0) > 2  # faces on a non-manifold edge
-        if not over.any():
-            break
-        f = f[~over]
-    for _ in range(10):
-        # Ears (triangles with two rim edges) would flatten to zero area once the rim is
-        # smoothed along itself: cut them off.
-        key = np.sort(face_edges(f), 1)
-        _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-        ears = (cnt[inv.ravel()].reshape(3, -1) == 1).sum(0) >= 2
-        if not ears.any():
-            break
-        f = f[~ears]
-    v, f = _largest_component(v, f)
-    v, f = _orient(v, f)
-    return _fill_small_holes(v, f)
-
-
-def _fill_small_holes(v: np.ndarray, f: np.ndarray, max_rim: int = 6, max_ratio: float = 0.25):
-    """Close the small holes that clustering leaves (not the garment's openings).
-
-    A hole is a rim of at most ``max_rim`` vertices whose perimeter is under ``max_ratio``
-    of the longest rim's (the openings are far longer). Each is closed by a fan around a new
-    vertex at its centroid, wound like its faces.
-    """
-    loops = _loops(f)
-    if not loops:
-        return v, f
-    perimeter = [float(np.linalg.norm(v[lp] - v[np.roll(lp, -1)], axis=1).sum()) for lp in loops]
-    longest = max(perimeter)
-    new_v, new_f = [v], [f]
-    n = len(v)
-    for loop, per in zip(loops, perimeter):
-        if len(loop) > max_rim or per >= max_ratio * longest:
-            continue
-        c = n
-        n += 1
-        new_v.append(v[loop].mean(0, keepdims=True))
-        # A rim edge a->b runs along its face's winding; the filling face runs b->a.
-        new_f.append(np.stack([np.roll(loop, -1), loop, np.full(len(loop), c)], 1))
-    return np.vstack(new_v), np.vstack(new_f)
-
-
-def _orient(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Consistent winding (BFS over faces), normals pointing away from the centroid side."""
-    from polygeo.mesh import orient_faces
-
-    f = np.asarray(orient_faces(f).faces, dtype=np.int64)
-    return v, f
-
-
-# -------------------------------------------------------------------------------- fitting
-
-
-def _mean_operators(f: np.ndarray, n: int) -> tuple[sp.csr_matrix, np.ndarray]:
-    """Neighbour-mean operator in which rim vertices average their two rim neighbours only.
-
-    Returns the ``(n, n)`` operator and the rim mask ``(n,)``.
-    """
-    be = _boundary_edges(f)
-    rim = np.zeros(n, bool)
-    rim[be.ravel()] = True
-    along = sp.csr_matrix(
-        (np.ones(2 * len(be)), (np.r_[be[:, 0], be[:, 1]], np.r_[be[:, 1], be[:, 0]])), (n, n)
-    )
-    along.data[:] = 1.0
-    rows = sp.diags((~rim).astype(float)) @ _adjacency(f, n) + sp.diags(rim.astype(float)) @ along
-    deg = np.asarray(rows.sum(1)).ravel()
-    return sp.csr_matrix(sp.diags(1.0 / np.maximum(deg, 1.0)) @ rows), rim
-
-
-def _room(v: np.ndarray, query, clearance: float) -> np.ndarray:
-    """Per-vertex clearance: ``clearance`` where there is room, less in the body's hollows.
-
-    A probe ``clearance`` off the skin at the closest body point is nearer than that to
-    another part of the body where the gap across (armpit, crotch) is under twice the
-    clearance; the gap is then about ``distance + clearance`` and a vertex keeps to 40 % of
-    it, so that the garment's two sides of the hollow stay apart.
-    """
-    _, closest, normal = query(v)
-    probe = np.abs(query(closest + clearance * normal)[0])
-    gap = probe + clearance
-    return np.clip(0.4 * gap, 0.1 * clearance, clearance)
-
-
-def _project_out(v: np.ndarray, query, room: np.ndarray) -> np.ndarray:
-    """Move vertices nearer to the body than ``room`` (V,) out to that distance.
-
-    Along the direction from the closest body point (the distance's gradient), not the
-    closest triangle's normal, so that vertices over a ridge of the body spread over an arc
-    instead of collapsing onto one point.
-    """
-    d, closest, normal = query(v)
-    low = d < room
-    if not low.any():
-        return v
-    away = v[low] - closest[low]
-    length = np.linalg.norm(away, axis=1, keepdims=True)
-    sign = np.where(d[low] < 0, -1.0, 1.0)[:, None]
-    direction = np.where(
-        length > 1e-9 * room[low, None], sign * away / np.maximum(length, 1e-300), normal[low]
-    )
-    v = v.copy()
-    v[low] = closest[low] + room[low, None] * direction
-    return v
-
-
-def _fit(v: np.ndarray, f: np.ndarray, query, clearance: float, iterations: int) -> np.ndarray:
-    """Laplacian smoothing alternating with projection to the clearance off the body.
-
-    Where the garment then crosses itself (two sides of a hollow), the vertices around the
-    crossing get half the room and the rounds go on, at most eight times.
-    """
-    mean, rim = _mean_operators(f, len(v))
-    room = _room(v, query, clearance)
-    adj = _adjacency(f, len(v))
-    for _ in range(8):
-        for _ in range(iterations):
-            v = v + 0.5 * (mean @ v - v)  # shrinks: bridges the body's hollows
-            v[rim] -= 0.53 * (mean @ v - v)[rim]  # Taubin on the rims: they keep their size
-            v = _project_out(v, query, room)
-        pairs = crossing_pairs(v, f)
-        if len(pairs) == 0:
-            break
-        near = np.zeros(len(v), bool)
-        near[f[pairs.ravel()].ravel()] = True
-        for _ in range(2):  # and their neighbours, twice removed
-            near |= (adj @ near.astype(float)) > 0
-        room[near] = np.maximum(0.5 * room[near], 0.05 * clearance)
-    return v
-
-
 # ------------------------------------------------------------------------------ front ends
-
-
-def _outward(v: np.ndarray, f: np.ndarray, query) -> np.ndarray:
-    """Wind ``f`` so that normals point away from the body."""
-    _, closest, _ = query(v)
-    n = _vertex_normals(v, f)
-    if np.einsum("ij,ij->i", n, v - closest).mean() < 0:
-        f = f[:, ::-1].copy()
-    return f
 
 
 def _stitch_skirt(b: _Body, spec: GarmentSpec, v: np.ndarray, f: np.ndarray | None, step: float):
@@ -588,7 +370,7 @@ def _stitch_skirt(b: _Body, spec: GarmentSpec, v: np.ndarray, f: np.ndarray | No
         rings = _skirt_rings(b, spec, None, step)
         r, m, _ = rings.shape
         return rings.reshape(-1, 3), _grid_faces(np.arange(r * m).reshape(r, m))
-    loops = _loops(f)
+    loops = boundary_loops(f)
     waist = min(loops, key=lambda lp: v[lp, 2].mean())
     rings = _skirt_rings(b, spec, v[waist], step)
     r, m, _ = rings.shape
@@ -657,13 +439,13 @@ def make_garment(
     v = f = None
     if spec.top or spec.leg > 0:
         rv, rf = _region(b, spec)
-        nrm = _vertex_normals(rv, rf)
-        v, f = rv + _room(rv + 1e-3 * clearance * nrm, query, clearance)[:, None] * nrm, rf
+        nrm = vertex_normals(rv, rf).normals
+        v, f = rv + room(rv + 1e-3 * clearance * nrm, query, clearance)[:, None] * nrm, rf
     if spec.skirt > 0:
         v, f = _stitch_skirt(b, spec, v, f, step)
-    v, f = _remesh(v, f, n_vertices, seed)
-    f = _outward(v, f, query)
-    v = _fit(v, f, query, clearance, fit_iterations)
+    v, f = remesh(v, f, n_vertices, seed)
+    f = wind_outward(v, f, query)
+    v = fit_to_body(v, f, query, clearance, fit_iterations)
     problems = check_garment(v, f, query)
     if problems:
         raise ValueError(
@@ -714,7 +496,7 @@ def load_garment(path: str | Path, query=None, name: str | None = None) -> Garme
     if problems:
         raise ValueError(f"{p}: not a usable garment: {'; '.join(problems)}")
     if query is not None:
-        f = _outward(v, f, query)
+        f = wind_outward(v, f, query)
     return Garment(name or p.stem, v, f, {"file": str(p)})
 
 
@@ -766,9 +548,9 @@ def fit_garment_to_shape(
         query = _default_query(dst, faces_body)
     clearance = float(garment.info.get("clearance", 0.0))
     if clearance > 0:  # a few rounds of the template's own fit settle it on the new body
-        v = _fit(v, garment.faces, query, clearance, iterations=5)
+        v = fit_to_body(v, garment.faces, query, clearance, iterations=5)
     else:
-        v = _project_out(v, query, np.full(len(v), 1e-3 * _extent(dst)))
+        v = project_out(v, query, np.full(len(v), 1e-3 * _extent(dst)))
     info = dict(garment.info)
     info["shape"] = None if shape is None else np.asarray(torch.as_tensor(shape)).tolist()
     return Garment(garment.name, v, garment.faces.copy(), info)

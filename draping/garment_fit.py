@@ -1,0 +1,244 @@
+"""The remeshing and fitting stages of garment templates (:func:`draping.garments.make_garment`).
+
+- **Remeshing** (:func:`remesh`): even triangles at a requested vertex count by approximate
+  centroidal Voronoi clustering (``pyacvd``), cleaned to one consistently wound manifold piece
+  (:func:`make_manifold`: degenerate and non-manifold faces and ears dropped, the largest
+  piece kept, small clustering holes filled).
+- **Fitting** (:func:`fit_to_body`): Laplacian smoothing (rims along themselves, Taubin)
+  alternating with projection to a clearance off the body (:func:`project_out`, less room in
+  the body's hollows: :func:`room`), with untangling rounds where the garment crosses itself.
+
+Meshes are NumPy ``(V, 3)`` float64 vertices (any length unit: every length is relative to
+the ``clearance`` given) and ``(F, 3)`` int64 faces. ``query(points) -> (signed_distance,
+closest, normal)`` answers for the rest body. Edges, boundary edges (directed along their
+face's winding), adjacency, orientation and vertex normals come from :mod:`polygeo.mesh`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import scipy.sparse as sp
+
+from draping.garment_checks import crossing_pairs, face_edges
+from polygeo.mesh import boundary_edges, orient_faces, vertex_adjacency, vertex_normals
+
+__all__ = [
+    "boundary_loops",
+    "largest_component",
+    "remesh",
+    "make_manifold",
+    "fill_small_holes",
+    "orient",
+    "mean_operators",
+    "room",
+    "project_out",
+    "fit_to_body",
+    "wind_outward",
+]
+
+
+def largest_component(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The connected piece with most faces, unreferenced vertices removed."""
+    from scipy.sparse.csgraph import connected_components
+
+    if len(f) == 0:
+        raise ValueError("garment: the selected body region is empty")
+    _, lab = connected_components(vertex_adjacency(f, len(v)), directed=False)
+    flab = lab[f[:, 0]]
+    keep = f[flab == np.bincount(flab).argmax()]
+    used = np.unique(keep)
+    remap = np.full(len(v), -1)
+    remap[used] = np.arange(len(used))
+    return v[used], remap[keep]
+
+
+
+def boundary_loops(f: np.ndarray) -> list[np.ndarray]:
+    """Boundary loops as ordered vertex lists."""
+    be = boundary_edges(f)
+    nxt = dict(zip(be[:, 0].tolist(), be[:, 1].tolist()))
+    loops, seen = [], set()
+    for s in be[:, 0].tolist():
+        if s in seen:
+            continue
+        loop, u = [], s
+        while u not in seen and u in nxt:
+            seen.add(u)
+            loop.append(u)
+            u = nxt[u]
+        loops.append(np.array(loop))
+    return loops
+
+
+
+# ------------------------------------------------------------------------------ remeshing
+
+
+
+def remesh(
+    v: np.ndarray, f: np.ndarray, n_vertices: int, seed: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Even triangles by approximate centroidal Voronoi clustering (pyacvd), then cleaned."""
+    import pyacvd
+    import pyvista as pv
+
+    level = max(0, int(math.ceil(math.log(max(8.0 * n_vertices / len(f), 1.0), 4))))
+    mesh = pv.PolyData(v, np.hstack([np.full((len(f), 1), 3), f]).ravel())
+    clus = pyacvd.Clustering(mesh)
+    if level:
+        clus.subdivide(level)
+    np.random.seed(seed)  # noqa: NPY002 - pyacvd draws its seeds from NumPy's global state
+    clus.cluster(n_vertices)
+    out = clus.create_mesh()
+    rv = np.asarray(out.points, dtype=np.float64)
+    rf = np.asarray(out.faces).reshape(-1, 4)[:, 1:].astype(np.int64)
+    return make_manifold(rv, rf)
+
+
+def make_manifold(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Drop degenerate faces and faces on edges shared by more than two, keep one piece."""
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
+    for _ in range(10):
+        key = np.sort(face_edges(f), 1)
+        _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+        over = cnt[inv.ravel()].reshape(3, -1).max(0) > 2  # faces on a non-manifold edge
+        if not over.any():
+            break
+        f = f[~over]
+    for _ in range(10):
+        # Ears (triangles with two rim edges) would flatten to zero area once the rim is
+        # smoothed along itself: cut them off.
+        key = np.sort(face_edges(f), 1)
+        _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+        ears = (cnt[inv.ravel()].reshape(3, -1) == 1).sum(0) >= 2
+        if not ears.any():
+            break
+        f = f[~ears]
+    v, f = largest_component(v, f)
+    v, f = orient(v, f)
+    return fill_small_holes(v, f)
+
+
+def fill_small_holes(v: np.ndarray, f: np.ndarray, max_rim: int = 6, max_ratio: float = 0.25):
+    """Close the small holes that clustering leaves (not the garment's openings).
+
+    A hole is a rim of at most ``max_rim`` vertices whose perimeter is under ``max_ratio``
+    of the longest rim's (the openings are far longer). Each is closed by a fan around a new
+    vertex at its centroid, wound like its faces.
+    """
+    loops = boundary_loops(f)
+    if not loops:
+        return v, f
+    perimeter = [float(np.linalg.norm(v[lp] - v[np.roll(lp, -1)], axis=1).sum()) for lp in loops]
+    longest = max(perimeter)
+    new_v, new_f = [v], [f]
+    n = len(v)
+    for loop, per in zip(loops, perimeter):
+        if len(loop) > max_rim or per >= max_ratio * longest:
+            continue
+        c = n
+        n += 1
+        new_v.append(v[loop].mean(0, keepdims=True))
+        # A rim edge a->b runs along its face's winding; the filling face runs b->a.
+        new_f.append(np.stack([np.roll(loop, -1), loop, np.full(len(loop), c)], 1))
+    return np.vstack(new_v), np.vstack(new_f)
+
+
+def orient(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Consistent winding (BFS over faces), normals pointing away from the centroid side."""
+    f = np.asarray(orient_faces(f).faces, dtype=np.int64)
+    return v, f
+
+
+# -------------------------------------------------------------------------------- fitting
+
+
+def mean_operators(f: np.ndarray, n: int) -> tuple[sp.csr_matrix, np.ndarray]:
+    """Neighbour-mean operator in which rim vertices average their two rim neighbours only.
+
+    Returns the ``(n, n)`` operator and the rim mask ``(n,)``.
+    """
+    be = boundary_edges(f)
+    rim = np.zeros(n, bool)
+    rim[be.ravel()] = True
+    along = sp.csr_matrix(
+        (np.ones(2 * len(be)), (np.r_[be[:, 0], be[:, 1]], np.r_[be[:, 1], be[:, 0]])), (n, n)
+    )
+    along.data[:] = 1.0
+    adj = vertex_adjacency(f, n)
+    rows = sp.diags((~rim).astype(float)) @ adj + sp.diags(rim.astype(float)) @ along
+    deg = np.asarray(rows.sum(1)).ravel()
+    return sp.csr_matrix(sp.diags(1.0 / np.maximum(deg, 1.0)) @ rows), rim
+
+
+def room(v: np.ndarray, query, clearance: float) -> np.ndarray:
+    """Per-vertex clearance: ``clearance`` where there is room, less in the body's hollows.
+
+    A probe ``clearance`` off the skin at the closest body point is nearer than that to
+    another part of the body where the gap across (armpit, crotch) is under twice the
+    clearance; the gap is then about ``distance + clearance`` and a vertex keeps to 40 % of
+    it, so that the garment's two sides of the hollow stay apart.
+    """
+    _, closest, normal = query(v)
+    probe = np.abs(query(closest + clearance * normal)[0])
+    gap = probe + clearance
+    return np.clip(0.4 * gap, 0.1 * clearance, clearance)
+
+
+def project_out(v: np.ndarray, query, room: np.ndarray) -> np.ndarray:
+    """Move vertices nearer to the body than ``room`` (V,) out to that distance.
+
+    Along the direction from the closest body point (the distance's gradient), not the
+    closest triangle's normal, so that vertices over a ridge of the body spread over an arc
+    instead of collapsing onto one point.
+    """
+    d, closest, normal = query(v)
+    low = d < room
+    if not low.any():
+        return v
+    away = v[low] - closest[low]
+    length = np.linalg.norm(away, axis=1, keepdims=True)
+    sign = np.where(d[low] < 0, -1.0, 1.0)[:, None]
+    direction = np.where(
+        length > 1e-9 * room[low, None], sign * away / np.maximum(length, 1e-300), normal[low]
+    )
+    v = v.copy()
+    v[low] = closest[low] + room[low, None] * direction
+    return v
+
+
+def fit_to_body(v: np.ndarray, f: np.ndarray, query, clearance: float,
+                iterations: int) -> np.ndarray:
+    """Laplacian smoothing alternating with projection to the clearance off the body.
+
+    Where the garment then crosses itself (two sides of a hollow), the vertices around the
+    crossing get half the room and the rounds go on, at most eight times.
+    """
+    mean, rim = mean_operators(f, len(v))
+    space = room(v, query, clearance)
+    adj = vertex_adjacency(f, len(v))
+    for _ in range(8):
+        for _ in range(iterations):
+            v = v + 0.5 * (mean @ v - v)  # shrinks: bridges the body's hollows
+            v[rim] -= 0.53 * (mean @ v - v)[rim]  # Taubin on the rims: they keep their size
+            v = project_out(v, query, space)
+        pairs = crossing_pairs(v, f)
+        if len(pairs) == 0:
+            break
+        near = np.zeros(len(v), bool)
+        near[f[pairs.ravel()].ravel()] = True
+        for _ in range(2):  # and their neighbours, twice removed
+            near |= (adj @ near.astype(float)) > 0
+        space[near] = np.maximum(0.5 * space[near], 0.05 * clearance)
+    return v
+
+
+def wind_outward(v: np.ndarray, f: np.ndarray, query) -> np.ndarray:
+    """Wind ``f`` so that normals point away from the body."""
+    _, closest, _ = query(v)
+    n = vertex_normals(v, f).normals
+    if np.einsum("ij,ij->i", n, v - closest).mean() < 0:
+        f = f[:, ::-1].copy()
+    return f
