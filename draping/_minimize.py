@@ -102,6 +102,9 @@ class Objective(NamedTuple):
     anchor: np.ndarray | None  # (V, 3)
     normal: np.ndarray | None  # (V, 3)
     free: np.ndarray  # (V,) bool
+    friction_ref: np.ndarray | None = None  # (V, 3) where a vertex sticking to the body goes
+    friction_weight: np.ndarray | None = None  # (V,) mu * lagged normal force (N)
+    friction_eps: float = 1e-4  # m: slip below which friction is static (smoothed)
 
 
 def evaluate(
@@ -148,6 +151,12 @@ def evaluate(
             diag += (6.0 * ob.k_c * pen)[:, None, None] * (
                 ob.normal[:, :, None] * ob.normal[:, None, :]
             )
+    if ob.friction_weight is not None:
+        e_f, g_f, h_f = _friction(ob, x, want_hess)
+        e += e_f
+        g += g_f
+        if want_hess:
+            diag += h_f
     if ob.x_hat is not None:
         w = st.mass / (ob.dt * ob.dt)
         dx = x - ob.x_hat
@@ -160,6 +169,29 @@ def evaluate(
         return e, g, None
     blocks[st.diag_map] += diag
     return e, g, _assemble(ob, blocks)
+
+
+def _friction(ob: Objective, x: np.ndarray, want_hess: bool):
+    """Lagged, smoothed Coulomb friction against the body (IPC's ``f0``; Li et al. 2020).
+
+    ``u = (I - n n^T)(x - ref)`` is the tangential slip against the body over the step,
+    ``E = sum_i w_i f0(|u_i|)`` with ``w_i = mu lambda_i`` (lagged normal force) and ``f0(s) = s``
+    beyond ``eps``, ``-s^3 / (3 eps^2) + s^2 / eps + eps / 3`` below (static friction). The
+    Hessian is the positive semi-definite ``w f1(s) / s (I - n n^T)``.
+    """
+    n, w, eps = ob.normal, ob.friction_weight, ob.friction_eps
+    dx = x - ob.friction_ref
+    u = dx - (dx * n).sum(1)[:, None] * n
+    s = np.linalg.norm(u, axis=1)
+    small = s < eps
+    f0 = np.where(small, -(s**3) / (3 * eps**2) + s**2 / eps + eps / 3, s)
+    ratio = np.where(small, 2.0 / eps - s / eps**2, 1.0 / np.maximum(s, 1e-300))  # f1(s) / s
+    e = float((w * f0).sum())
+    g = (w * ratio)[:, None] * u
+    h = None
+    if want_hess:
+        h = (w * ratio)[:, None, None] * (np.eye(3) - n[:, :, None] * n[:, None, :])
+    return e, g, h
 
 
 def _assemble(ob: Objective, data: np.ndarray) -> sp.bsr_matrix:

@@ -424,7 +424,8 @@ def drape_frames(scene: DrapeScene, solver: reference.SolverSettings | None = No
             res = reference.drape_static(scene.rest, scene.skinned[t], query, solver)
         else:
             x0 = initial_guess(scene, t, x, v, query, solver, init)
-            res = reference.drape_step(scene.rest, x, v, scene.dt, query, solver, x0=x0)
+            res = reference.drape_step(scene.rest, x, v, scene.dt, query, solver, x0=x0,
+                                       body_motion=scene.skinned[t] - scene.skinned[t - 1])
         distance = query.query(res.x).distance
         seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
         x, v = res.x, res.v

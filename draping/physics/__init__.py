@@ -11,6 +11,7 @@ returns one energy per frame, shape ``(...)``; all are differentiable in torch (
 - bending: dihedral angles, eq. (17), and the GAPS blend of eq. (41);
 - gravity eq. (39), inertia eq. (42) (the implicit-Euler term of eq. (26));
 - body collision eq. (27)/(40): cubic penalty on a signed distance supplied by the caller;
+- body friction: lagged, smoothed Coulomb friction (IPC, Li et al. 2020) for dynamic frames;
 - self repulsion eq. (28) over truncated neighbour pairs (memory ``O(V k)``);
 - GAPS covariance inextensibility eq. (44) with the collision-aware ``k_ext`` of eq. (45),
   built on :mod:`polygeo.covariance`.
@@ -21,6 +22,7 @@ The rest geometry of a garment (inverse rest edge matrices, areas, lumped masses
 
 from .contact import (
     collision_energy,
+    friction_energy,
     inextensibility_energy,
     k_ext_schedule,
     plane_distance,
@@ -52,6 +54,7 @@ __all__ = [
     "inertia_energy",
     "collision_energy",
     "plane_distance",
+    "friction_energy",
     "repulsion_pairs",
     "repulsion_energy",
     "inextensibility_energy",

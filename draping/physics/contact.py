@@ -17,6 +17,7 @@ from ._common import like, positions, reduce_terms
 from .rest import RestState
 
 __all__ = [
+    "friction_energy",
     "collision_energy",
     "plane_distance",
     "repulsion_pairs",
@@ -103,6 +104,55 @@ def plane_distance(x: torch.Tensor, anchor: torch.Tensor, normal: torch.Tensor) 
             f"anchor, normal: expected shapes broadcastable to x {tuple(x.shape)}, got "
             f"{tuple(anchor.shape)} and {tuple(normal.shape)}"
         ) from exc
+
+
+def friction_energy(
+    x: torch.Tensor,
+    reference: torch.Tensor,
+    normal: torch.Tensor,
+    weight: torch.Tensor,
+    eps: float = 1e-4,
+    reduction: str = "sum",
+) -> torch.Tensor:
+    """Lagged, smoothed Coulomb friction against the body (IPC's ``f0``, Li et al. 2020).
+
+    ``sum_i w_i f0(|u_i|)`` with ``u_i = (I - n_i n_i^T)(x_i - r_i)`` the tangential slip of
+    vertex ``i`` against where it would be had it moved with the body (``r_i``), ``w_i = mu
+    lambda_i`` (friction coefficient times the lagged normal force) and ``f0(s) = s`` for
+    ``s >= eps``, ``-s^3 / (3 eps^2) + s^2 / eps + eps / 3`` below (static friction: C^1 at
+    ``eps``, zero force at zero slip). The force is ``w_i`` in magnitude once slipping.
+
+    Parameters
+    ----------
+    x, reference : (..., V, 3) and (V, 3) float tensors
+        Positions and sticking positions (m).
+    normal : (V, 3) float tensor
+        Unit body normals (the contact planes).
+    weight : (V,) float tensor
+        ``mu lambda`` (N), >= 0 (0 where there is no contact).
+    eps : float
+        Slip (m) below which friction is static, > 0.
+    reduction : {"sum", "none"}
+        Per frame ``(...)`` or per vertex ``(..., V)``.
+
+    Returns
+    -------
+    float tensor
+        Energy (J).
+
+    Raises
+    ------
+    ValueError
+        ``eps <= 0``, an unknown reduction.
+    """
+    e = check_positive(eps, "eps")
+    dx = x - reference
+    u = dx - (dx * normal).sum(-1, keepdim=True) * normal
+    s2 = (u * u).sum(-1)
+    s = torch.sqrt(torch.where(s2 > 0, s2, torch.ones_like(s2)))
+    s = torch.where(s2 > 0, s, torch.zeros_like(s))
+    f0 = torch.where(s < e, -(s**3) / (3 * e * e) + s * s / e + e / 3, s)
+    return reduce_terms(weight * f0, reduction)
 
 
 def repulsion_pairs(x: Any, rest: RestState, delta: float, k: int = 16) -> torch.Tensor:

@@ -122,8 +122,11 @@ def test_objective_matches_frame_energy():
     x_prev = torch.tensor(v)
     v_prev = torch.tensor(noisy(np.zeros_like(v), 0.1, 2))
     x = torch.tensor(noisy(v, 0.01, 3) - np.array([0.0, 0.0, 0.015]))
-    pb = R._problem(r, st, query, None, x_prev, v_prev, 1 / 30)
+    motion = torch.tensor(noisy(np.zeros_like(v), 0.002, 4))
+    pb = R._problem(r, st, query, None, x_prev, v_prev, 1 / 30, motion)
     ob = R._objective(pb, x.numpy())
+    # vertices pressed into the ball have friction (sliding: slips of mm > friction_eps)
+    assert ob.friction_weight is not None and (ob.friction_weight > 0).sum() >= 1
     e, g, h = _minimize.evaluate(ob, x.numpy(), want_hess=True)
     xt = x.clone().requires_grad_()
     et = R.frame_energy(
@@ -135,6 +138,8 @@ def test_objective_matches_frame_energy():
         dt=1 / 30,
         anchor=torch.from_numpy(ob.anchor),
         normal=torch.from_numpy(ob.normal),
+        friction_reference=x_prev + motion,
+        friction_weight=torch.from_numpy(ob.friction_weight),
     )
     (gt,) = torch.autograd.grad(et, xt)
     assert e == pytest.approx(float(et), rel=1e-12)
@@ -161,7 +166,8 @@ def test_energy_decreases_every_step(method):
 def test_energy_decreases_every_step_of_a_dynamic_frame_on_a_body():
     v, f = grid_sheet(9, 0.5, z=0.305)
     r = P.rest_state(v, f)
-    st = R.SolverSettings(tol=1e-4, max_iter=300, requery_every=10_000)
+    # one set of tangent planes and lagged friction forces (a re-query changes the energy)
+    st = R.SolverSettings(tol=1e-4, max_iter=300, max_requery=0)
     v0 = np.tile([0.0, 0.0, -1.0], (81, 1))
     out = R.drape_step(r, v, v0, 1 / 30, R.sphere_query([0, 0, 0], 0.3), st)
     tr = np.array(out.trace)
@@ -209,6 +215,54 @@ def test_project_outside():
         R.project_outside(x, q, -1.0)
     with pytest.raises(ValueError, match="x"):
         R.project_outside(x[:, :2], q)
+
+
+def test_friction_energy_hand_values_and_gradcheck():
+    n = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64).expand(4, 3)
+    ref = torch.zeros(4, 3, dtype=torch.float64)
+    w = torch.tensor([2.0, 2.0, 0.5, 0.0], dtype=torch.float64)
+    eps = 0.01
+    # slips: 0.03 (sliding), 0.005 (static), 0.02 along x plus 0.7 along the normal (ignored)
+    x = torch.tensor([[0.03, 0.0, 0.1], [0.0, 0.005, 0.0], [0.02, 0.0, 0.7], [1.0, 1.0, 1.0]],
+                     dtype=torch.float64, requires_grad=True)
+    e = P.friction_energy(x, ref, n, w, eps, reduction="none")
+    s = 0.005
+    static = -(s**3) / (3 * eps**2) + s**2 / eps + eps / 3
+    np.testing.assert_allclose(e.detach().numpy(), [2 * 0.03, 2 * static, 0.5 * 0.02, 0.0])
+    (g,) = torch.autograd.grad(e.sum(), x)
+    # sliding: a force of magnitude mu lambda against the slip, none along the normal
+    np.testing.assert_allclose(g[0].numpy(), [2.0, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(g[2].numpy(), [0.5, 0, 0], atol=1e-12)
+    assert 0 < float(g[1, 1]) < 2.0  # static: less than the sliding force
+    gen = torch.Generator().manual_seed(6)
+    y = (0.01 * torch.randn(4, 3, generator=gen, dtype=torch.float64)).requires_grad_()
+    assert torch.autograd.gradcheck(lambda z: P.friction_energy(z, ref, n, w, eps), (y,))
+    with pytest.raises(ValueError, match="eps"):
+        P.friction_energy(x, ref, n, w, 0.0)
+
+
+def test_friction_carries_a_sheet_resting_on_a_moving_floor():
+    """A sheet lying on a floor that jerks sideways by 1 cm in one frame: without friction it
+    stays put; with a high friction coefficient it is carried along (within the static slip);
+    with mu = 0.5 it slides, accelerated at mu g (Coulomb): moved by mu g dt^2."""
+    v, f = grid_sheet(6, 0.3, z=0.002)
+    r = P.rest_state(v, f)
+    floor = R.plane_query([0, 0, 0], [0, 0, 1])
+    motion = np.tile([0.01, 0.0, 0.0], (36, 1))  # 1 cm per frame along x
+    zero = np.zeros_like(v)
+    out = {}
+    for mu in (0.0, 0.5, 2.0):
+        st = R.SolverSettings(tol=1e-6, friction=mu)
+        x, vel = torch.tensor(v), torch.zeros(36, 3, dtype=torch.float64)
+        for _ in range(3):  # settle onto the floor first
+            res = R.drape_step(r, x, vel, 1 / 30, floor, st, body_motion=zero)
+            x, vel = res.x, res.v
+        x_before = x.clone()
+        res = R.drape_step(r, x, vel, 1 / 30, floor, st, body_motion=motion)
+        out[mu] = float((res.x - x_before)[:, 0].mean())
+    assert abs(out[0.0]) < 1e-6
+    assert out[2.0] == pytest.approx(0.01, abs=2e-4)
+    assert out[0.5] == pytest.approx(0.5 * 9.81 / 30**2, rel=0.05)
 
 
 def test_free_fall_accelerates_at_g():
