@@ -52,24 +52,28 @@ OPTION_HELP = {
     "seed": "seed of the patch partition",
     # optimiser
     "window": "sliding-window size W (frames optimised together)",
-    "patience": "iterations without improvement that end a window",
+    "patience": "Adam iterations without improvement that end a window",
     "max_iterations": "most iterations per window (the thesis' frame period: 500)",
-    "min_improvement": "relative decrease of the loss that counts as an improvement",
-    "lr_uv": "Adam learning rate of the uv displacements (normalised units)",
-    "lr_alpha": "Adam learning rate of the jet-coefficient offsets",
-    "lr_rigid": "Adam learning rate of the rigid motion (radians, normalised units; the "
+    "min_improvement": "relative decrease of the loss (a fraction of its running minimum) "
+                       "that counts as an improvement",
+    "lr_uv": "Adam learning rate of the uv displacements (normalised units: template radius "
+             "1)",
+    "lr_alpha": "Adam learning rate of the jet-coefficient offsets (canonical units of a "
+                "patch)",
+    "lr_rigid": "Adam learning rate of the rigid motion (radians and normalised units; the "
                 "thesis: 1e-4)",
-    "lr_vertex": "Adam learning rate of the baseline's per-vertex offsets",
-    "lr_patch": "Adam learning rate of the per-patch rigid motions",
+    "lr_vertex": "Adam learning rate of the baseline's per-vertex offsets (normalised units)",
+    "lr_patch": "Adam learning rate of the per-patch rigid motions (radians and normalised "
+                "units)",
     "init": "'extrapolate' (constant velocity from the two previous frames) or 'previous' "
             "(the thesis)",
     "carry_adam": "true/false: keep each frame's Adam moments across windows",
     "keep_best": "true/false: a window returns its lowest-loss iterate, not its last",
-    "warmup": "Adam steps over which a fresh state's learning rates ramp up from 0",
+    "warmup": "Adam iterations over which a fresh state's learning rates ramp up from 0",
     "freeze": "comma-separated parameters kept fixed, e.g. d_alpha,d_uv",
     "dtype": "'float32' or 'float64': dtype of the optimisation",
     # losses
-    "rgb_weight": "weight of the colour term",
+    "rgb_weight": "weight of the colour term (dimensionless, like every weight below)",
     "silhouette_weight": "weight of the silhouette term (needs masks)",
     "inextensibility_weight": "weight of edge-length inextensibility, eq. (47) (the thesis: "
                               "0.1)",
@@ -85,7 +89,8 @@ OPTION_HELP = {
     "pyramid": "coarser image levels (2x2, 4x4, ... block means) added to the image terms",
     # raster
     "sigma": "soft rasterizer sharpness in pixels^2",
-    "gamma": "soft rasterizer depth temperature of the colour softmax",
+    "gamma": "soft rasterizer depth temperature of the colour softmax (normalised depth "
+             "units)",
     "blur_threshold": "coverage below which a face is ignored at a pixel, in [0, 0.5)",
     "tile_size": "screen tile side in pixels (speed only)",
     "background": "comma-separated background colour (one value or one per channel)",
@@ -96,13 +101,18 @@ OPTION_HELP = {
     "min_area": "faces of projected area below this (pixels^2) are skipped",
     # output
     "checkpoint_every": "windows between checkpoints (0: none)",
-    "overlays": "frames that get a frame/render/error PNG",
+    "overlays": "number of frames that get a frame/render/error PNG",
     "charts": "true/false: write the PNG charts at the end",
     "quiet": "no progress bar",
 }
 
 #: Settings the command line does not expose (the optimiser needs soft renders).
 _HIDDEN = ("hard",)
+
+
+#: Metavariables of the settings options by field type (what a value looks like).
+_METAVARS = {"int": "N", "float": "X", "bool": "BOOL", "tuple[str, ...]": "NAMES",
+             "Sequence[float]": "R,G,B", "int | str": "N|auto", "str": "NAME"}
 
 
 def _floats(s: str) -> tuple[float, ...]:
@@ -137,7 +147,8 @@ def _add_settings_args(p: argparse.ArgumentParser) -> None:
                                        default=None, help=help_)
             continue
         groups[group].add_argument(flag, dest=name, type=_parser_of(types[name]),
-                                   default=None, help=help_)
+                                   default=None, metavar=_METAVARS.get(types[name], "X"),
+                                   help=help_)
 
 
 def _bool(s: str) -> bool:
@@ -178,12 +189,17 @@ def register(sub: argparse._SubParsersAction) -> None:
         "template's e_3d, e_n in degrees, RMSE, iterations, seconds), frames.jsonl, "
         "losses.jsonl, PNG charts and a checkpoint (an interrupted run resumes).",
     )
-    p.add_argument("sequence", help="sequence folder (see sft.data)")
-    p.add_argument("-o", "--out", required=True, help="output folder")
-    p.add_argument("--max-frames", type=int, default=None, help="process the first N frames")
-    p.add_argument("--no-resume", action="store_true", help="ignore an existing checkpoint")
-    p.add_argument("--threads", type=int, default=1,
-                   help="CPU threads (default 1: fastest on a shared machine)")
+    p.add_argument("sequence", help="sequence folder: frames/, template, camera.json, optional "
+                   "masks/ and gt/ (see sft.data)")
+    p.add_argument("-o", "--out", required=True,
+                   help="output folder (required; created, or resumed from its checkpoint)")
+    p.add_argument("--max-frames", type=int, default=None, metavar="N",
+                   help="process the first N frames (default: every frame)")
+    p.add_argument("--no-resume", action="store_true",
+                   help="ignore an existing checkpoint (default: resume from it)")
+    p.add_argument("--threads", type=int, default=1, metavar="N",
+                   help="CPU threads of torch and numba (default 1: fastest on a shared "
+                   "machine)")
     _add_settings_args(p)
     p.set_defaults(func=run)
 

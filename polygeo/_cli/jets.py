@@ -56,7 +56,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--columns",
         default=None,
         help="names of the columns of a text or .npy cloud, e.g. 'x y z nx ny nz' or "
-        "'x,y,z,r,g,b' (must include x, y, z; nx ny nz are normals; others are ignored)",
+        "'x,y,z,r,g,b' (must include x, y, z; nx ny nz are normals; others are ignored; default: "
+        "a header line of names, else the rule above)",
     )
     p.add_argument(
         "-o",
@@ -75,7 +76,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--radius",
         type=float,
         default=None,
-        help="use all neighbours within this distance (input units) instead of the k nearest",
+        help="use all neighbours within this distance (input units) instead of the k nearest "
+        "(default: none, --k)",
     )
     p.add_argument(
         "--order",
@@ -87,13 +89,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--rings",
         type=int,
         default=None,
-        help="meshes only: use the RINGS-ring of each vertex as its neighbourhood",
+        help="meshes only: use the RINGS-ring of each vertex as its neighbourhood (default: "
+        "none, --k)",
     )
     p.add_argument(
         "--weights",
         choices=["uniform", "gaussian"],
         default="uniform",
-        help="least-squares weights: uniform (CGAL) or Gaussian in the distance",
+        help="least-squares weights: uniform (CGAL) or Gaussian in the distance (default "
+        "uniform)",
     )
     p.add_argument(
         "--interpolate",
@@ -108,7 +112,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="where the normals' signs come from (default auto: input normals, else mesh, "
         "else propagation; up: towards +z, per point, the default of tiled runs)",
     )
-    p.add_argument("--ply", default=None, help="also write a binary PLY with the same attributes")
+    p.add_argument("--ply", default=None,
+                   help="also write a binary PLY with the same attributes (default: none)")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
     from polygeo._cli.jets_large import add_arguments
 

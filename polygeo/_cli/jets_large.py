@@ -28,12 +28,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     g.add_argument("--memory-limit", default=None,
                    help="process in spatial tiles so that peak memory stays under this size "
-                        "(e.g. 4GB); results equal the in-memory run with --orient up/none")
+                        "(e.g. 4GB); results equal the in-memory run with --orient up/none "
+                        "(default: none, in memory)")
     g.add_argument("--tile-points", type=int, default=None,
-                   help="tiles of about this many points (instead of --memory-limit)")
+                   help="tiles of about this many points (instead of --memory-limit; "
+                        "default: none)")
     g.add_argument("--dask", default=None,
                    help="run the tiles as Dask tasks: 'local:N' (LocalCluster of N workers) "
-                        "or a scheduler address 'tcp://host:8786'")
+                        "or a scheduler address 'tcp://host:8786' (default: none, in this process)")
     g.add_argument("--keep-parts", action="store_true",
                    help="keep the run folder OUTPUT.parts/ (memory-mapped results, tile log) "
                         "after success; it is always kept after a failure so that a new run "

@@ -16,16 +16,21 @@ def register(sub: argparse._SubParsersAction) -> None:
         "share, Chamfer x 1e3 against the input normalised to the unit sphere) and writes the "
         "patch set as NPZ.",
     )
-    p.add_argument("mesh", help="input mesh or point cloud (.ply .obj .off .npz .xyz .npy)")
-    p.add_argument("-o", "--output", required=True, help="output patch set (.npz)")
+    p.add_argument("mesh", help="input mesh or point cloud (.ply .obj .off .stl .npz .xyz "
+                   ".txt .csv .npy), in any length unit")
+    p.add_argument("-o", "--output", required=True,
+                   help="output patch set (.npz; required, replaced atomically)")
     p.add_argument("--patches", type=int, default=None, metavar="K",
-                   help="number of patches (a count, not an area; default scale-free: about "
-                   "6 vertices per jet coefficient, at most 400)")
-    p.add_argument("--order", default="4", help="jet order 1..6 or 'auto' (default 4)")
-    p.add_argument("--tol", type=float, default=None,
+                   help="number of patches K (a count of patches, not an area, so it does not "
+                   "depend on the input's units; default scale-free: about 6 vertices per jet "
+                   "coefficient, at most 400)")
+    p.add_argument("--order", default="4", metavar="N|auto",
+                   help="jet order 1..6 or 'auto' (default 4)")
+    p.add_argument("--tol", type=float, default=None, metavar="HEIGHT",
                    help="height tolerance for --order auto (input units; default: BIC)")
-    p.add_argument("--target-rmse", type=float, default=None,
-                   help="choose K so that the overall height RMSE is at most this (input units)")
+    p.add_argument("--target-rmse", type=float, default=None, metavar="RMSE",
+                   help="choose K so that the overall height RMSE is at most this (input "
+                   "units; default: none, K from --patches)")
     p.add_argument("--orient", choices=("pca", "stn", "optimize"), default="pca",
                    help="patch canonicalisation (default pca)")
     p.add_argument("--resample", type=int, default=None, metavar="R",
@@ -33,15 +38,18 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "distance, the deviation check and --mesh-out; default 2: level 0 samples "
                    "only the input vertices and misses a surface that leaves the input "
                    "between them)")
-    p.add_argument("--mesh-out", default=None, help="write the resampled surface as PLY")
-    p.add_argument("--chamfer-samples", type=int, default=10000,
+    p.add_argument("--mesh-out", default=None, metavar="PLY",
+                   help="write the resampled surface as PLY (default: not written)")
+    p.add_argument("--chamfer-samples", type=int, default=10000, metavar="N",
                    help="input samples for the Chamfer distances (0 disables; default 10000, "
                    "Table 5.1)")
-    p.add_argument("--chamfer-dense", type=int, default=100000,
+    p.add_argument("--chamfer-dense", type=int, default=100000, metavar="N",
                    help="samples of the resampled surface for the dense (AtlasNet-style) point "
                    "protocol (default 100000)")
-    p.add_argument("--seed", type=int, default=0, help="partition and sampling seed")
-    p.add_argument("--json", default=None, help="also write the summary as JSON")
+    p.add_argument("--seed", type=int, default=0,
+                   help="partition and sampling seed (default 0)")
+    p.add_argument("--json", default=None, metavar="PATH",
+                   help="also write the summary as JSON (default: not written)")
     p.set_defaults(func=_run)
 
 

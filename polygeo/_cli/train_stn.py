@@ -22,27 +22,30 @@ def register(sub: argparse._SubParsersAction) -> None:
         "polygeo/data/stn_weights.* to ship it.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("--out", default="stn_weights.pt", help="weights file to write")
+    p.add_argument("--out", default="stn_weights.pt",
+                   help="weights file to write (.pt, with a .json of its config, command, time "
+                   "and figures beside it)")
     p.add_argument("--checkpoint-dir", default="stn_checkpoints",
                    help="checkpoint folder (resumed if it holds a checkpoint of the same setup)")
     p.add_argument("--no-resume", action="store_true", help="ignore an existing checkpoint")
-    p.add_argument("--steps", type=int, default=d.steps, help="largest number of steps")
+    p.add_argument("--steps", type=int, default=d.steps, help="largest number of Adam steps")
     p.add_argument("--batch-size", type=int, default=d.batch_size, help="patches per step")
     p.add_argument("--points", type=int, default=d.n_points, help="points per patch")
     p.add_argument("--train-patches", type=int, default=d.n_train,
-                   help="cached training patches")
-    p.add_argument("--val-patches", type=int, default=d.n_val, help="held-out patches")
-    p.add_argument("--lr", type=float, default=d.lr, help="Adam learning rate")
+                   help="cached training patches (drawn once)")
+    p.add_argument("--val-patches", type=int, default=d.n_val, help="held-out validation patches")
+    p.add_argument("--lr", type=float, default=d.lr, help="Adam learning rate (per step, on the "
+                   "network's weights)")
     p.add_argument("--order", type=int, default=d.order,
                    help="jet order of the height residual minimised after rotation")
     p.add_argument("--mesh-share", type=float, default=d.mesh_share,
-                   help="share of training patches cut from garment-like meshes (0..1)")
+                   help="fraction in [0, 1] of the training patches cut from garment-like meshes")
     p.add_argument("--patience", type=int, default=d.patience,
                    help="validations without improvement before stopping (0: never)")
     p.add_argument("--seed", type=int, default=d.seed, help="seed of data and initialisation")
     p.add_argument("--threads", type=int, default=d.threads, help="torch CPU threads")
     p.add_argument("--eval-every", type=int, default=d.eval_every,
-                   help="steps between validations on the held-out patches")
+                   help="Adam steps between validations on the held-out patches")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_run)
 
