@@ -54,11 +54,9 @@ def jets_table(n_points: int, k: int) -> list[dict]:
     """Fit jets to a torus at orders 1..4 and noise 0 / 0.1 % / 1 %; return one row per setting."""
     from polygeo import differential_quantities, synthetic
 
-    # warm-up: the first call in a fresh environment compiles the kernels (tens of seconds);
-    # keep that out of the points/s column
+    # warm-up: the first call in a fresh environment compiles the kernels (tens of seconds,
+    # announced by polygeo.cli.compile_notice); keep that out of the points/s column
     # (same size as the table: small inputs take the serial kernels, large ones the parallel)
-    print("warming up (a first run in a new environment compiles the kernels: tens of seconds, "
-          "cached on disk afterwards) ...", file=sys.stderr, flush=True)
     warm = synthetic.torus(n_points, R=1.0, r=0.4, seed=1)
     for order in (1, 2, 3, 4):
         differential_quantities(warm.points, k=k, order=order, normals=warm.normals)
