@@ -1,0 +1,80 @@
+"""The GAPS benchmark's evaluation set is held back from training; its parsimony rule."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _load(name: str, path: Path):
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault(name, mod)  # dataclasses look their module up
+    spec.loader.exec_module(sys.modules[name])
+    return sys.modules[name]
+
+
+@pytest.fixture(scope="module")
+def ev():
+    return _load("make_gaps_eval", ROOT / "datasets" / "make_gaps_eval.py")
+
+
+@pytest.fixture(scope="module")
+def bm():
+    return _load("bm_gaps", ROOT / "benchmarks" / "bm_gaps.py")
+
+
+def test_eval_cases_are_held_back_from_training(ev):
+    from draping.gaps import TRAIN_MOTIONS, TrainSettings, held_out_cases, random_shapes
+
+    ts = TrainSettings()
+    cases = ev.eval_cases()
+    assert len(cases) == 3 * 2 * 2
+    pool = random_shapes(ts.shapes, ts.seed).numpy()
+    trainer_held_out = {c.shape for c in held_out_cases(3)}
+    for c in cases:
+        if c.motion == "random":
+            assert c.seed >= max(ts.random_motions, 1000)
+        else:
+            assert c.motion not in TRAIN_MOTIONS
+        s = np.asarray(c.shape)
+        assert np.all((s >= 0) & (s <= 1))
+        assert np.abs(pool - s).max(1).min() > 1e-3  # not a training shape
+        assert c.shape not in trainer_held_out
+    assert len({c.shape for c in cases}) == 2
+
+
+@pytest.mark.parametrize("frames", [0, 61])
+def test_eval_cases_reject_frame_counts(ev, frames):
+    with pytest.raises(ValueError, match="frames"):
+        ev.eval_cases(frames=frames)
+
+
+def test_case_motion_is_a_prefix_of_one_motion(ev, tmp_path):
+    import dataclasses
+
+    c = ev.eval_cases(["tshirt"], frames=4, quick=True)[0]
+    short = ev.case_motion(tmp_path, c)
+    long = ev.case_motion(tmp_path, dataclasses.replace(c, frames=9))
+    assert short.rotations.shape[0] == 4 and long.rotations.shape[0] == 9
+    assert np.array_equal(short.rotations.numpy(), long.rotations[:4].numpy())
+    assert np.array_equal(short.translation.numpy(), long.translation[:4].numpy())
+    assert float(long.rotations.abs().max()) > 0  # the body moves
+
+
+def test_parsimony_picks_the_smallest_network_within_ten_percent(bm):
+    rows = [{"label": "big", "params": 1000, "e_dist_cm_mean": 1.00},
+            {"label": "mid", "params": 500, "e_dist_cm_mean": 1.08},
+            {"label": "small", "params": 100, "e_dist_cm_mean": 1.25}]
+    pick, best = bm.parsimonious(rows)
+    assert (pick["label"], best) == ("mid", 1.00)
+    rows[2]["e_dist_cm_mean"] = 1.09
+    assert bm.parsimonious(rows)[0]["label"] == "small"
+    with pytest.raises(ValueError, match="rows"):
+        bm.parsimonious([])
