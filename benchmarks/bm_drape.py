@@ -1,6 +1,7 @@
 """Benchmark of the draping foundation: reference-solver speed against accuracy.
 
-Run ``python benchmarks/bm_drape.py [--sections solver] [--quick] [--out DIR]``. Writes
+Run ``python benchmarks/bm_drape.py [--sections solver,skinning,collision,newton] [--quick]
+[--out DIR]``. Writes
 ``bm_drape.json`` and one PNG chart per section (``bm_drape_<section>.png``) into
 ``benchmarks/results``. Each section is one function; ``--sections`` picks them.
 
@@ -15,7 +16,13 @@ distance (mean and max over vertices, mm) of the last frame to a tight reference
 the energy has many local minima: two solvers may stop in different wrinkle patterns, which the
 distance shows.
 
-Timings are wall-clock with one thread, on whatever machine runs this (a shared, busy CPU
+Section ``skinning``: CPU seconds and peak traced memory (``tracemalloc``) of the nearest,
+Laplacian and RBF garment weights (:mod:`draping.skinning`) of T-shirts of about 2k, 5k and 10k
+vertices against the full 13k-vertex body (memory must stay ``O(N_garment k)``, far from the
+``N_garment x N_body`` a dense participation matrix takes). Section ``collision``: the signed
+distance query of ``bm_drape_body.py`` against body resolution.
+
+Solver timings are wall-clock with one thread, on whatever machine runs this (a shared, busy CPU
 makes them noisy).
 """
 
@@ -298,7 +305,171 @@ def chart_newton(data: dict, path: Path) -> None:
     plt.close(fig)
 
 
-SECTIONS = {"solver": (section_solver, chart_solver), "newton": (section_newton, chart_newton)}
+# ------------------------------------------------------------------ skinning and collision
+
+
+def _garments_for_skinning(quick: bool):
+    """T-shirts of about 2k, 5k and 10k vertices for the rest Anny body (5k: the shipped)."""
+    import torch
+
+    from draping import garments
+    from draping.body import AnnyBody
+
+    body = AnnyBody.load(dtype=torch.float64)
+    out = []
+    for n in (2000,) if quick else (2000, 5000, 10000):
+        g = garments.garment("tshirt") if n == 5000 else garments.make_garment(
+            "tshirt", body, n_vertices=n)
+        out.append(g)
+    return body, out
+
+
+def section_skinning(quick: bool, save) -> dict:
+    """Seconds and peak memory of each skinning method against the full body."""
+    import tracemalloc
+
+    import torch
+
+    from draping.skinning import dense_body_weights, skinning_weights
+
+    torch.set_num_threads(1)
+    body, gs = _garments_for_skinning(quick)
+    rv = body.rest_vertices.double().numpy()[0] if body.rest_vertices.ndim == 3 else \
+        body.rest_vertices.double().numpy()
+    wb = dense_body_weights((body.skin_indices.numpy(), body.skin_weights.double().numpy()),
+                            body.num_vertices, body.num_bones)
+    data = {"body_vertices": int(rv.shape[0]), "bones": int(body.num_bones), "runs": []}
+    for g in gs:
+        for method in ("nearest", "laplacian", "rbf"):
+            def run(method=method, g=g):
+                return skinning_weights(method, g.vertices, rv, wb, garment_faces=g.faces)
+
+            run()  # warm (numba kernels, caches)
+            walls, cpus = [], []
+            for _ in range(1 if quick else 3):
+                t0, c0 = time.perf_counter(), time.process_time()
+                w = run()
+                walls.append(time.perf_counter() - t0)
+                cpus.append(time.process_time() - c0)
+            tracemalloc.start()
+            run()
+            _, peak = tracemalloc.get_traced_memory()
+            tracemalloc.stop()
+            w = np.asarray(w)
+            row = {
+                "garment_vertices": int(len(g.vertices)),
+                "method": method,
+                "seconds_wall": min(walls),
+                "seconds_cpu": min(cpus),
+                "peak_mib": peak / 2**20,
+                # the (G, J) result itself, and what a dense G x N_body matrix would take
+                "result_mib": w.nbytes / 2**20,
+                "dense_g_by_body_mib": len(g.vertices) * rv.shape[0] * 8 / 2**20,
+                "bones_used_per_vertex_mean": float((w > 1e-6).sum(1).mean()),
+            }
+            data["runs"].append(row)
+            print(json.dumps(row), flush=True)
+            save(data)
+    return data
+
+
+def chart_skinning(data: dict, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for method, mk in (("nearest", "o"), ("laplacian", "s"), ("rbf", "^")):
+        rr = [r for r in data["runs"] if r["method"] == method]
+        g = [r["garment_vertices"] for r in rr]
+        axes[0].plot(g, [r["seconds_cpu"] for r in rr], mk + "-", label=method)
+        axes[1].plot(g, [r["peak_mib"] for r in rr], mk + "-", label=method)
+    rr = [r for r in data["runs"] if r["method"] == "rbf"]
+    axes[1].plot([r["garment_vertices"] for r in rr], [r["dense_g_by_body_mib"] for r in rr],
+                 "k:", label="a dense G x N_body float64 matrix")
+    axes[0].set_ylabel("CPU seconds (1 thread)")
+    axes[1].set_ylabel("peak traced memory (MiB)")
+    axes[1].set_yscale("log")
+    for ax in axes:
+        ax.set_xlabel("garment vertices")
+        ax.legend(fontsize=8)
+    fig.suptitle(f"garment skinning weights against the {data['body_vertices']}-vertex body")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def section_collision(quick: bool, save) -> dict:
+    """Signed-distance query time against body resolution (``bm_drape_body.bench_collision``).
+
+    10k points 1 mm inside or outside the full body, queried against the 2.5k-vertex proxy,
+    the full 13k-vertex body and a 4x subdivision; warm kernels, CPU time of one thread.
+    """
+    import sys
+
+    import torch
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bm_drape_body import bench_collision
+
+    from draping.body import AnnyBody
+
+    torch.set_num_threads(1)
+    n, rep = (2000, 2) if quick else (10000, 5)
+    data = {"runs": bench_collision(AnnyBody.load(), n_points=n, repeat=rep, peers=False)}
+    save(data)
+    return data
+
+
+def chart_collision(data: dict, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    rr = data["runs"]
+    fig, ax = plt.subplots(figsize=(5.5, 4))
+    ax.plot([r["faces"] for r in rr], [r["query_cpu_ms"] for r in rr], "o-", label="CPU time")
+    ax.plot([r["faces"] for r in rr], [r["query_wall_ms"] for r in rr], "o--",
+            label="wall (shared machine)")
+    ax.axhline(50, color="gray", ls=":", lw=0.8, label="target 50 ms")
+    for r in rr:
+        ax.annotate(r["mesh"], (r["faces"], r["query_cpu_ms"]), fontsize=7)
+    ax.set_xscale("log")
+    ax.set_xlabel("body triangles")
+    ax.set_ylabel(f"ms for {rr[0]['points']} points")
+    ax.set_title("signed distance + closest point + normal")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+SECTIONS = {
+    "solver": (section_solver, chart_solver),
+    "skinning": (section_skinning, chart_skinning),
+    "collision": (section_collision, chart_collision),
+    "newton": (section_newton, chart_newton),
+}
+
+
+def _machine() -> dict:
+    """Machine, versions, date and load of this run (timings depend on all of them)."""
+    import datetime
+
+    import numba
+    import scipy
+    import torch
+
+    return {
+        "platform": platform.platform(),
+        "processor": platform.machine(),
+        "cpus": os.cpu_count(),
+        "threads": 1,
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "numba": numba.__version__,
+        "torch": torch.__version__,
+        "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "load_average": list(os.getloadavg()),
+        "note": "shared, busy machine: CPU seconds are the comparable figure",
+    }
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -324,7 +495,7 @@ def main(argv: list[str] | None = None) -> None:
     a.out.mkdir(parents=True, exist_ok=True)
     path = a.out / "bm_drape.json"
     record = json.loads(path.read_text()) if path.exists() else {}
-    record["machine"] = {"platform": platform.platform(), "cpus": os.cpu_count(), "threads": 1}
+    record["machine"] = _machine()
     for name in names:
         run, chart = SECTIONS[name]
         t0 = time.perf_counter()
@@ -341,6 +512,7 @@ def main(argv: list[str] | None = None) -> None:
         def save(partial: dict, name: str = name, t0: float = t0, command: str = command) -> None:
             partial["command"] = command
             partial["seconds"] = time.perf_counter() - t0
+            partial["load_average"] = list(os.getloadavg())
             record[name] = partial
             path.write_text(json.dumps(record, indent=1))
 

@@ -205,12 +205,33 @@ def _assemble(ob: Objective, data: np.ndarray) -> sp.bsr_matrix:
     return sp.bsr_matrix((data, st.block_cols, st.indptr), shape=(3 * n, 3 * n))
 
 
-def laplacian_factor(ob: Objective, dt: float) -> Callable[[np.ndarray], np.ndarray]:
+def contact_diagonal(ob: Objective, x: np.ndarray, scale: float = 1.0) -> np.ndarray | None:
+    """Per-vertex isotropic stand-in ``(V,)`` (N/m) of the contact Hessians at ``x``.
+
+    ``scale`` times the collision stiffness along the normal ``6 k_c (eps - d)`` plus the
+    friction's tangential stiffness; None without body contact.
+    """
+    if ob.anchor is None:
+        return None
+    d = ((x - ob.anchor) * ob.normal).sum(1)
+    c = 6.0 * ob.k_c * np.maximum(ob.eps - d, 0.0)
+    if ob.friction_weight is not None:
+        dx = x - ob.friction_ref
+        u = dx - (dx * ob.normal).sum(1)[:, None] * ob.normal
+        s = np.linalg.norm(u, axis=1)
+        eps = ob.friction_eps
+        c = c + ob.friction_weight * np.where(s < eps, 2.0 / eps - s / eps**2,
+                                              1.0 / np.maximum(s, 1e-300))
+    return scale * c
+
+
+def laplacian_factor(ob: Objective, dt: float, extra: np.ndarray | None = None
+                     ) -> Callable[[np.ndarray], np.ndarray]:
     """Factorised ``M / dt^2 + K`` (V x V, shared by x, y, z) as a solve ``(V, 3) -> (V, 3)``.
 
     ``K`` is the graph Laplacian with edge weights ``(2 mu + lambda) h (A_0 + A_1) / (3 l^2)``
-    (the membrane's stiffness along each edge at rest, blind to the garment's orientation).
-    Pinned vertices get identity rows.
+    (the membrane's stiffness along each edge at rest, blind to the garment's orientation),
+    plus ``diag(extra)`` (e.g. :func:`contact_diagonal`). Pinned vertices get identity rows.
     """
     st, m = ob.st, ob.rest.material
     n = st.mass.shape[0]
@@ -223,6 +244,8 @@ def laplacian_factor(ob: Objective, dt: float) -> Callable[[np.ndarray], np.ndar
     ji = np.concatenate([e[:, 1], e[:, 0]])
     lap = sp.coo_matrix((np.concatenate([-w, -w]), (ij, ji)), shape=(n, n)).tocsr()
     a = lap - sp.diags(np.asarray(lap.sum(1)).ravel()) + sp.diags(st.mass / dt**2)
+    if extra is not None:
+        a = a + sp.diags(extra)
     if not ob.free.all():
         keep = sp.diags(ob.free.astype(np.float64))
         a = keep @ a @ keep + sp.diags((~ob.free).astype(np.float64))

@@ -441,6 +441,15 @@ def _structure(rest: physics.RestState) -> _minimize.Structure:
     return st
 
 
+#: Weight of the contact stiffness (collision along the normal, friction along the tangent
+#: plane) added to the diagonal of the preconditioner ``M / dt^2 + K`` at each body query,
+#: as an isotropic stand-in for the 3x3 contact blocks (the factorisation is shared by x, y, z).
+#: Replaying frames 6, 12 and 20 of the 5,000-vertex T-shirt on the walk (one thread, load
+#: 19-23): 3.54-3.85 CPU s without it, 2.61 with weight 1, 2.32-2.35 with 1/3; same energies
+#: to 1e-5 J and eps_e to 0.002 %.
+_CONTACT_SCALE = 1.0 / 3.0
+
+
 def _solve(x0: torch.Tensor, pb: _Problem) -> tuple[torch.Tensor, float, float, int, list]:
     """Minimise one frame, re-querying the body every ``requery_every`` iterations.
 
@@ -454,7 +463,8 @@ def _solve(x0: torch.Tensor, pb: _Problem) -> tuple[torch.Tensor, float, float, 
     tol_abs = st.tol * pb.weight
     precond = None
     if st.method in ("newton", "pqn"):
-        precond = _minimize.laplacian_factor(ob, pb.dt or st.static_dt)
+        precond = _minimize.laplacian_factor(ob, pb.dt or st.static_dt,
+                                             _minimize.contact_diagonal(ob, x, _CONTACT_SCALE))
     done, trace, rounds = 0, [], 0
     while True:
         last = pb.query is None or rounds >= st.max_requery
@@ -470,6 +480,9 @@ def _solve(x0: torch.Tensor, pb: _Problem) -> tuple[torch.Tensor, float, float, 
             break
         ob = _objective(pb, x)
         rounds += 1
+        if precond is not None:  # the contacts changed: refactorise (12 ms for 5k vertices)
+            precond = _minimize.laplacian_factor(
+                ob, pb.dt or st.static_dt, _minimize.contact_diagonal(ob, x, _CONTACT_SCALE))
         e, g, _ = _minimize.evaluate(ob, x)
         gn = float(np.linalg.norm(g))
         if gn <= tol_abs or done >= st.max_iter or out.iterations == 0:
