@@ -40,16 +40,26 @@ HERE = Path(__file__).resolve().parent
 
 
 def make_cloud(n: int, path: Path, seed: int = 0, chunk: int = 2_000_000) -> Path:
-    """Write a synthetic terrain + buildings + noise LAZ cloud of ``n`` points."""
+    """Write a synthetic terrain + buildings + noise LAZ cloud of ``n`` points (streamed).
+
+    A square of ``sqrt(N / 4)`` metres (about 4 points per square metre) cut into 50 m
+    cells; 60 % of the cells hold a building (8-30 m wide footprint inside the cell, 4-20 m
+    high, flat or gable roof, 15 % of its points on the walls). Points are drawn uniformly,
+    ``chunk`` at a time (so the input order is random in space: the worst case for writing
+    results back in input order), with 2 cm of Gaussian noise.
+    """
     import laspy
 
     side = float(np.sqrt(n / 4.0))
+    nc = max(1, int(np.ceil(side / 50.0)))
     rng0 = np.random.default_rng(seed)
-    nb = max(1, int(side * side / 2500))  # one building per 50 m x 50 m
-    bx = rng0.uniform(0, side, (nb, 2))
-    bw = rng0.uniform(8, 30, (nb, 2))
-    bh = rng0.uniform(4, 20, nb)
-    gable = rng0.random(nb) < 0.5
+    cells = np.stack(np.meshgrid(np.arange(nc), np.arange(nc), indexing="ij"), -1)
+    cells = cells.reshape(-1, 2).astype(np.float64)
+    bw = rng0.uniform(8, 30, (nc * nc, 2))
+    bx = cells * 50 + 25 + rng0.uniform(-1, 1, (nc * nc, 2)) * (25 - bw / 2)
+    bh = rng0.uniform(4, 20, nc * nc)
+    gable = rng0.random(nc * nc) < 0.5
+    has = rng0.random(nc * nc) < 0.6
     h = laspy.LasHeader(point_format=1, version="1.2")
     h.scales = [0.001, 0.001, 0.001]
     h.offsets = [500000.0, 4000000.0, 0.0]
@@ -63,26 +73,22 @@ def make_cloud(n: int, path: Path, seed: int = 0, chunk: int = 2_000_000) -> Pat
             z = (3 * np.sin(xy[:, 0] / 40) * np.cos(xy[:, 1] / 55) + 0.8 * np.sin(xy[:, 0] / 9)
                  + 0.5 * np.cos(xy[:, 1] / 7))
             cls = np.full(m, 2, dtype=np.uint8)
-            # buildings: points whose (x, y) falls on a footprint are on the roof, a few on
-            # the walls (x, y moved onto the outline)
-            cell = np.floor(xy / 50).astype(np.int64)
-            for b in range(nb):
-                d = np.abs(xy - bx[b]) / (bw[b] / 2)
-                inside = (d < 1).all(1)
-                if not inside.any():
-                    continue
-                idx = np.flatnonzero(inside)
-                roof = bh[b] + np.where(gable[b], 0.4 * bw[b, 0] / 2 * (1 - d[idx, 0]), 0)
-                wall = rng.random(idx.size) < 0.15
-                z[idx] = z[idx] + np.where(wall, rng.uniform(0, 1, idx.size) * roof, roof)
-                side_x = rng.random(idx.size) < 0.5
-                ww = idx[wall]
-                sx = side_x[wall]
-                sgn = np.sign(xy[ww] - bx[b])
-                xy[ww[sx], 0] = bx[b, 0] + sgn[sx, 0] * bw[b, 0] / 2
-                xy[ww[~sx], 1] = bx[b, 1] + sgn[~sx, 1] * bw[b, 1] / 2
-                cls[idx] = 6
-            del cell
+            # buildings: points whose (x, y) falls on their cell's footprint are on the
+            # roof, a few on the walls ((x, y) moved onto the outline)
+            c = np.minimum(np.floor(xy / 50).astype(np.int64), nc - 1)
+            b = c[:, 0] * nc + c[:, 1]
+            d = np.abs(xy - bx[b]) / (bw[b] / 2)
+            idx = np.flatnonzero((d < 1).all(1) & has[b])
+            bi = b[idx]
+            roof = bh[bi] + np.where(gable[bi], 0.4 * bw[bi, 0] / 2 * (1 - d[idx, 0]), 0)
+            wall = rng.random(idx.size) < 0.15
+            z[idx] = z[idx] + np.where(wall, rng.uniform(0, 1, idx.size) * roof, roof)
+            side_x = rng.random(idx.size) < 0.5
+            ww, sx, bb = idx[wall], side_x[wall], bi[wall]
+            sgn = np.sign(xy[ww] - bx[bb])
+            xy[ww[sx], 0] = bx[bb[sx], 0] + sgn[sx, 0] * bw[bb[sx], 0] / 2
+            xy[ww[~sx], 1] = bx[bb[~sx], 1] + sgn[~sx, 1] * bw[bb[~sx], 1] / 2
+            cls[idx] = 6
             z = z + rng.normal(0, 0.02, m)
             rec = laspy.ScaleAwarePointRecord.zeros(m, header=h)
             rec.x, rec.y, rec.z = 500000 + xy[:, 0], 4000000 + xy[:, 1], z
@@ -98,64 +104,93 @@ def _peak_mb(children: bool = False) -> float:
     return resource.getrusage(who).ru_maxrss / 1024.0
 
 
-def run_one(mode: str, laz: Path, work: Path, k: int) -> dict:
-    """Run one method in this process; returns its record (time, rate, peak RSS)."""
+def _cpu_s() -> float:
+    """CPU seconds (user + system) of this process and its waited-for children."""
+    tot = 0.0
+    for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN):
+        r = resource.getrusage(who)
+        tot += r.ru_utime + r.ru_stime
+    return tot
+
+
+def run_one(mode: str, laz: Path, work: Path, k: int, keep: bool = False) -> dict:
+    """Run one method in this process; returns its record (time, rate, peak RSS).
+
+    The LAZ file is read (``memory``, ``open3d``) or opened (decompressed cache made
+    beforehand) first; ``seconds`` and ``cpu_s`` count the computation from there on
+    (``read_seconds`` the reading). ``keep``: resume a tiled run folder left by an earlier,
+    interrupted run instead of starting afresh.
+    """
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    t0 = time.perf_counter()
-    rec: dict = {"mode": mode}
+    rec: dict = {"mode": mode, "load_start": os.getloadavg()[0]}
+    t_read = time.perf_counter()
     if mode == "memory":
         import polygeo
         from polygeo.io_las import read_las
 
         pts = read_las(laz).points
+        rec["read_seconds"] = time.perf_counter() - t_read
+        t0, c0 = time.perf_counter(), _cpu_s()
         up = np.zeros_like(pts)
         up[:, 2] = 1
         dq = polygeo.differential_quantities(pts, normals=up, orient="input", k=k,
                                              progress=False)
         n = len(pts)
         rec["ok_fraction"] = float((np.asarray(dq.status) == 0).mean())
+        out = work / f"memory_{n}.npz"  # kept for the equality check of the tiled runs
+        np.savez(out, k1=np.asarray(dq.k1), normals=np.asarray(dq.normals),
+                 status=np.asarray(dq.status))
     elif mode.startswith("tiled") or mode.startswith("dask"):
         from polygeo.io_las import open_points
         from polygeo.tiling import TileSettings, jets_dask, jets_tiled
 
         pts = open_points(laz, cache_dir=work / "cache")
+        rec["read_seconds"] = time.perf_counter() - t_read
         n = int(pts.shape[0])
-        folder = work / f"run_{mode.replace(' ', '_').replace(':', '')}"
-        if folder.exists():
+        folder = work / f"run_{mode.replace(' ', '_').replace(':', '')}_{n}"
+        if folder.exists() and not keep:
             import shutil
 
             shutil.rmtree(folder)
+        quiet = os.environ.get("BM_SCALE_PROGRESS") != "1"
+        t0, c0 = time.perf_counter(), _cpu_s()
+        limit = mode.split()[2] if mode.startswith("dask") else mode.split()[1]
         if mode.startswith("tiled"):
-            limit = mode.split()[1]
             res = jets_tiled(pts, folder, TileSettings(k=k), memory_limit=limit, source=laz,
-                             quiet=True)
+                             quiet=quiet)
         else:
             res = jets_dask(pts, folder, TileSettings(k=k), dask=mode.split()[1],
-                            memory_limit="2GB", source=laz, quiet=True)
+                            memory_limit=limit, source=laz, quiet=quiet)
         rec["tiles"] = res.n_tiles
+        rec["resumed_tiles"] = res.n_resumed
         rec["ok_fraction"] = float((np.asarray(res["status"]) == 0).mean())
+        rec["folder"] = str(folder)
     elif mode == "open3d":
+        import laspy
         import open3d as o3d
 
-        from polygeo.io_las import read_las
-
-        pts = read_las(laz).points
-        t0 = time.perf_counter()  # reading measured separately: count the estimate alone
+        las = laspy.read(str(laz))  # laspy only: this mode may run in a venv of its own
+        pts = np.column_stack([las.x, las.y, las.z]).astype(np.float64)
+        del las
+        rec["read_seconds"] = time.perf_counter() - t_read
+        t0, c0 = time.perf_counter(), _cpu_s()
         pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts - pts.mean(0)))
         pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=k))
         n = len(pts)
-        rec["note"] = "reading excluded; KNN PCA normals only (no curvature)"
+        rec["note"] = "KNN PCA normals only (no curvature), all cores"
     else:
         raise ValueError(f"mode: unknown {mode!r}")
     dt = time.perf_counter() - t0
-    rec.update(points=n, seconds=dt, points_per_s=n / dt, peak_rss_mb=_peak_mb(),
-               peak_rss_children_mb=_peak_mb(children=True))
+    rec.update(points=n, seconds=dt, points_per_s=n / dt, cpu_s=_cpu_s() - c0,
+               peak_rss_mb=_peak_mb(), peak_rss_children_mb=_peak_mb(children=True),
+               load_end=os.getloadavg()[0])
     return rec
 
 
-def _child(mode: str, laz: Path, work: Path, k: int, timeout: float) -> dict:
-    cmd = [sys.executable, __file__, "--one", mode, "--laz", str(laz), "--work", str(work),
-           "--k", str(k)]
+def _child(mode: str, laz: Path, work: Path, k: int, timeout: float,
+           python: str | None = None) -> dict:
+    cmd = [python or sys.executable, __file__, "--one", mode, "--laz", str(laz),
+           "--work", str(work), "--k", str(k)]
     try:
         out = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
@@ -163,6 +198,83 @@ def _child(mode: str, laz: Path, work: Path, k: int, timeout: float) -> dict:
     if out.returncode != 0:
         return {"mode": mode, "error": out.stderr.strip().splitlines()[-1:]}
     return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def merge_records(path: Path, new: list[dict]) -> list[dict]:
+    """Records of ``path`` with those of the same (mode, size) replaced by ``new``."""
+    old = json.loads(path.read_text())["records"] if path.exists() else []
+    keys = {(r["mode"], r["size"]) for r in new}
+    return [r for r in old if (r["mode"], r.get("size")) not in keys] + new
+
+
+def check_equal(laz: Path, work: Path, folder: Path, k: int, tiles: int = 0,
+                margin: float = 20.0, seed: int = 0) -> dict:
+    """Compare a tiled run's results with in-memory ones (largest differences, status).
+
+    ``tiles == 0``: against the whole-cloud in-memory run saved by the ``memory`` mode.
+    Else ``tiles`` tiles drawn at random: their own points against one in-memory call on
+    every point within ``margin`` (metres, > 10 neighbourhood radii here) of the tile, a
+    superset of their neighbourhoods (checked: each own point's k-th neighbour is nearer
+    than the window's edge).
+    """
+    import polygeo
+    from polygeo.io_las import open_points
+    from polygeo.runs import read_jsonl
+
+    pts = open_points(laz, cache_dir=work / "cache")
+    n = int(pts.shape[0])
+    res = {f: np.load(folder / f"{f}.npy", mmap_mode="r") for f in ("k1", "normals", "status")}
+    out: dict = {"folder": str(folder)}
+    if tiles == 0:
+        ref = np.load(work / f"memory_{n}.npz")
+        rows = [np.arange(n)]
+        refs = [{f: ref[f] for f in ("k1", "normals", "status")}]
+    else:
+        import json as _json
+
+        meta = _json.loads((folder / "plan.json").read_text())
+        lo, hi, (nx, ny) = meta["lo"], meta["hi"], meta["shape"]
+        done = [r["tile"] for r in read_jsonl(folder / "tiles.jsonl") if r.get("n")]
+        pick = np.random.default_rng(seed).choice(done, min(tiles, len(done)), replace=False)
+        rows, refs = [], []
+        wx, wy = (hi[0] - lo[0]) / nx, (hi[1] - lo[1]) / ny
+        for t in pick:
+            ix, iy = divmod(int(t), ny)
+            box = (lo[0] + ix * wx, lo[0] + (ix + 1) * wx, lo[1] + iy * wy, lo[1] + (iy + 1) * wy)
+            sel, own = [], []
+            for s in range(0, n, 1 << 23):
+                xyz = np.asarray(pts[s:s + (1 << 23)])
+                x, y = xyz[:, 0], xyz[:, 1]
+                win = ((x >= box[0] - margin) & (x <= box[1] + margin) & (y >= box[2] - margin)
+                       & (y <= box[3] + margin))
+                sel.append(np.flatnonzero(win) + s)
+            idx = np.concatenate(sel)
+            P = np.asarray(pts[idx])
+            kx = np.clip(np.floor((P[:, 0] - lo[0]) / wx), 0, nx - 1)
+            ky = np.clip(np.floor((P[:, 1] - lo[1]) / wy), 0, ny - 1)
+            own = (kx * ny + ky) == t
+            up = np.zeros_like(P)
+            up[:, 2] = 1
+            dq = polygeo.differential_quantities(P, normals=up, orient="input", k=k,
+                                                 progress=False)
+            kd = polygeo.neighbors.knn(P, k + 1, queries=P[own]).distance[:, -1]
+            edge = np.minimum.reduce([P[own, 0] - box[0] + margin, box[1] + margin - P[own, 0],
+                                      P[own, 1] - box[2] + margin, box[3] + margin - P[own, 1]])
+            assert (kd < edge).all(), "window too small for the neighbourhoods"
+            rows.append(idx[own])
+            refs.append({f: np.asarray(getattr(dq, f))[own] for f in res})
+        out["tiles"] = [int(t) for t in pick]
+    dk1, dn, nstat, npts = 0.0, 0.0, 0, 0
+    for r, ref in zip(rows, refs):
+        a = np.asarray(res["k1"][r])
+        ok = np.isfinite(a) & np.isfinite(ref["k1"])
+        dk1 = max(dk1, float(np.abs(a[ok] - ref["k1"][ok]).max(initial=0)))
+        dn = max(dn, float(np.abs(np.asarray(res["normals"][r]) - ref["normals"])[ok].max(
+            initial=0)))
+        nstat += int((np.asarray(res["status"][r]).astype(int) != ref["status"]).sum())
+        npts += r.size
+    out.update(points=npts, max_abs_k1=dk1, max_abs_normal=dn, status_mismatch=nstat)
+    return out
 
 
 def chart(records: list[dict], png: Path) -> None:
@@ -195,18 +307,31 @@ def chart(records: list[dict], png: Path) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", nargs="+", type=float, default=[1e6])
-    ap.add_argument("--limits", nargs=2, default=["2GB", "1GB"])
+    ap.add_argument("--modes", nargs="+",
+                    default=["memory", "tiled 2GB", "tiled 4GB", "dask local:2 2GB", "open3d"],
+                    help="methods, run one after the other (repeat one to interleave)")
     ap.add_argument("--k", type=int, default=20)
     ap.add_argument("--out", default=str(HERE / "results"))
     ap.add_argument("--work", default=None, help="folder for the clouds and runs")
-    ap.add_argument("--skip", nargs="*", default=[], help="modes to skip (memory, dask, ...)")
     ap.add_argument("--timeout", type=float, default=3600)
-    ap.add_argument("--one", default=None, help=argparse.SUPPRESS)
-    ap.add_argument("--laz", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--one", default=None, help="run one mode in this process (JSON out)")
+    ap.add_argument("--laz", default=None, help="with --one: the cloud")
+    ap.add_argument("--keep", action="store_true", help="with --one: resume a tiled run")
+    ap.add_argument("--generate", action="store_true", help="only generate the clouds")
+    ap.add_argument("--open3d-python", default=None,
+                    help="interpreter with open3d and laspy for the open3d mode (a venv)")
+    ap.add_argument("--check", default=None,
+                    help="with --laz: compare this tiled run folder with in-memory results")
+    ap.add_argument("--check-tiles", type=int, default=0,
+                    help="with --check: sample this many tiles (0: the saved in-memory run)")
     args = ap.parse_args(argv)
     work = Path(args.work or (Path(args.out) / "bm_scale_work"))
+    if args.check:
+        print(json.dumps(check_equal(Path(args.laz), work, Path(args.check), args.k,
+                                     tiles=args.check_tiles)))
+        return 0
     if args.one:
-        print(json.dumps(run_one(args.one, Path(args.laz), work, args.k)))
+        print(json.dumps(run_one(args.one, Path(args.laz), work, args.k, keep=args.keep)))
         return 0
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -218,20 +343,27 @@ def main(argv=None) -> int:
             t = time.perf_counter()
             make_cloud(n, laz)
             print(f"generated {laz} in {time.perf_counter() - t:.1f} s", flush=True)
-        modes = ["memory", *(f"tiled {lim}" for lim in args.limits), "dask local:2", "open3d"]
-        for mode in modes:
-            if mode.split()[0] in args.skip:
-                continue
-            r = _child(mode, laz, work, args.k, args.timeout)
+        from polygeo.io_las import open_points
+
+        open_points(laz, cache_dir=work / "cache")  # decompressed once, outside the timings
+        if args.generate:
+            continue
+        for mode in args.modes:
+            py = args.open3d_python if mode == "open3d" else None
+            r = _child(mode, laz, work, args.k, args.timeout, python=py)
             if mode.startswith("dask") and "error" not in r:
                 r["worker_rss_mb"] = r.get("peak_rss_children_mb", 0.0)
             r["size"] = n
             records.append(r)
             print(json.dumps(r), flush=True)
+    if args.generate:
+        return 0
     meta = {"command": " ".join([Path(sys.executable).name, *sys.argv]),
             "machine": platform.platform(), "cpus": os.cpu_count(),
-            "note": "shared, busy 2-core machine: timings are noisy"}
-    (out / "bm_scale.json").write_text(json.dumps({"meta": meta, "records": records}, indent=1))
+            "note": "shared, busy 2-core machine: timings are noisy; cpu_s is user + system"}
+    path = out / "bm_scale.json"
+    records = merge_records(path, records)
+    path.write_text(json.dumps({"meta": meta, "records": records}, indent=1))
     chart(records, out / "bm_scale.png")
     return 0
 

@@ -359,16 +359,19 @@ def _laz_cache(p: Path, cache_dir: Path) -> np.ndarray:
         cache_dir.mkdir(parents=True, exist_ok=True)
         tmp = cache.with_name(cache.name + f".{os.getpid()}.tmp")
         try:
-            mm = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float64, shape=(n, 3))
+            # appended to the file (not through a memory map: its pages would stay resident)
+            header = {"descr": np.lib.format.dtype_to_descr(np.dtype(np.float64)),
+                      "fortran_order": False, "shape": (n, 3)}
             start = 0
-            for chunk in _chunks(p):
-                m = len(chunk)
-                mm[start:start + m, 0] = chunk.x
-                mm[start:start + m, 1] = chunk.y
-                mm[start:start + m, 2] = chunk.z
-                start += m
-            mm.flush()
-            del mm
+            with open(tmp, "wb") as fh:
+                np.lib.format.write_array_header_1_0(fh, header)
+                for chunk in _chunks(p):
+                    xyz = np.empty((len(chunk), 3))
+                    xyz[:, 0], xyz[:, 1], xyz[:, 2] = chunk.x, chunk.y, chunk.z
+                    fh.write(xyz.tobytes())
+                    start += len(xyz)
+            if start != n:
+                raise ValueError(f"{p}: {start} points decompressed, {n} declared")
             os.replace(tmp, cache)
         except BaseException:
             tmp.unlink(missing_ok=True)

@@ -20,11 +20,14 @@ too: normals are oriented towards a reference direction (``orient="up"``: ``+z``
 choice for aerial scans), towards input normals (``"input"``), or left as fitted
 (``"none"``); the global propagation of the in-memory default is not available here.
 
-Results go into memory-mapped ``.npy`` files in the input's point order, in a run folder with
-a JSONL log of finished tiles (:class:`polygeo.runs.JsonlLog`): an interrupted run started
-again with the same settings continues at the next unfinished tile. Peak memory is bounded
-by the tile size, chosen from ``memory_limit`` and a measured bytes-per-point model
-(:func:`bytes_per_point`).
+Each finished tile's rows are written, in tile order, into ``tile_<field>.npy`` files of a
+run folder with a JSONL log of finished tiles (:class:`polygeo.runs.JsonlLog`): an interrupted
+run started again with the same settings continues at the next unfinished tile. A last pass
+writes ``<field>.npy`` in the input's point order (so scattered input orders cost one
+streamed pass, not a rewrite of every result page per tile). Everything that spans the whole
+cloud is streamed (the plan in chunked passes, its order bucketed into a file; rows read from
+memory maps in blocks whose pages are released): peak memory is bounded by the tile size,
+chosen from ``memory_limit`` and a measured bytes-per-point model (:func:`bytes_per_point`).
 """
 
 from __future__ import annotations
@@ -32,15 +35,26 @@ from __future__ import annotations
 import math
 import os
 import re
-from dataclasses import asdict, dataclass
+import time
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ._tiles import (
+    NpyRows,
+    TilePlan,
+    create_tile_files,
+    drop_pages,
+    plan_tiles,
+    read_rows,
+    reorder,
+    store_tile,
+    tile_keys,
+)
 from .checks import check_choice, check_int, check_positive
 from .runs import JsonlLog, atomic_write_json, fingerprint, progress, read_jsonl
-from .status import Status
 
 __all__ = [
     "TileSettings",
@@ -178,146 +192,6 @@ def bytes_per_point(settings: TileSettings) -> float:
     return (_BPP_BASE + _BPP_PER_NEIGHBOR * (k + 1)) * scale
 
 
-@dataclass(frozen=True)
-class TilePlan:
-    """A grid of tiles over the finite points' ``(x, y)`` bounding box.
-
-    Attributes
-    ----------
-    lo, hi : (2,) float
-        Bounding box of the finite points in x, y (length unit).
-    shape : (2,) int
-        Tiles along x and y.
-    offsets : (T + 1,) int64
-        Tile ``t`` owns ``order[offsets[t]:offsets[t + 1]]`` (``t = ix * ny + iy``).
-    order : (N_finite,) int64 array
-        Indices of the finite points sorted by tile, ascending inside a tile.
-    n_points, n_nonfinite : int
-        Points in the cloud, of which not finite (no tile: status NONFINITE_INPUT).
-    budget : int
-        Largest number of points (own + halo) one tile may load.
-    """
-
-    lo: tuple[float, float]
-    hi: tuple[float, float]
-    shape: tuple[int, int]
-    offsets: np.ndarray
-    order: np.ndarray
-    n_points: int
-    n_nonfinite: int
-    budget: int
-
-    @property
-    def n_tiles(self) -> int:
-        """Number of tiles (empty ones included)."""
-        return int(self.shape[0] * self.shape[1])
-
-    def tile_box(self, t: int) -> tuple[float, float, float, float]:
-        """``(x0, x1, y0, y1)`` of tile ``t``."""
-        ix, iy = divmod(int(t), int(self.shape[1]))
-        wx, wy = self._widths()
-        return (self.lo[0] + ix * wx, self.lo[0] + (ix + 1) * wx,
-                self.lo[1] + iy * wy, self.lo[1] + (iy + 1) * wy)
-
-    def _widths(self) -> tuple[float, float]:
-        wx = (self.hi[0] - self.lo[0]) / self.shape[0] or 1.0
-        wy = (self.hi[1] - self.lo[1]) / self.shape[1] or 1.0
-        return wx, wy
-
-    def members(self, t: int) -> np.ndarray:
-        """Global indices of the points tile ``t`` owns (ascending)."""
-        return np.asarray(self.order[self.offsets[t]:self.offsets[t + 1]])
-
-
-def _tile_keys(xy: np.ndarray, lo, hi, shape) -> np.ndarray:
-    """Tile index of each (finite) row of ``xy`` (points on the upper edge go to the last)."""
-    keys = []
-    for a in range(2):
-        w = (hi[a] - lo[a]) / shape[a] or 1.0
-        i = np.floor((xy[:, a] - lo[a]) / w).astype(np.int64)
-        keys.append(np.clip(i, 0, shape[a] - 1))
-    return keys[0] * shape[1] + keys[1]
-
-
-def plan_tiles(points: Any, *, tile_points: int, budget: int | None = None,
-               tiles: tuple[int, int] | None = None, chunk: int = 4_000_000) -> TilePlan:
-    """Cut a cloud into a grid of tiles of at most about ``tile_points`` own points.
-
-    The grid is square-celled in the finite points' ``(x, y)`` box and refined until no
-    tile owns more than ``tile_points`` points (or a tile is smaller than 1/4096 of the box:
-    dense spots then give bigger tiles). Points are read ``chunk`` rows at a time.
-
-    Parameters
-    ----------
-    points : (N, 3) array-like
-        Coordinates (a NumPy array, memory map or :class:`polygeo.io_las.PointSource`).
-    tile_points : int
-        Target largest number of own points per tile.
-    budget : int, optional
-        Largest number of points one tile may load with its halo (default
-        ``2 * tile_points``).
-    tiles : (int, int), optional
-        A fixed grid (tiles along x, y) instead of the one ``tile_points`` gives.
-
-    Returns
-    -------
-    TilePlan
-    """
-    n = int(points.shape[0])
-    tile_points = check_int(tile_points, "tile_points", low=1)
-    lo = np.array([np.inf, np.inf])
-    hi = -lo
-    n_bad = 0
-    for s in range(0, n, chunk):
-        xyz = np.asarray(points[s:s + chunk], dtype=np.float64)
-        fin = np.isfinite(xyz).all(1)
-        n_bad += int((~fin).sum())
-        if fin.any():
-            lo = np.minimum(lo, xyz[fin, :2].min(0))
-            hi = np.maximum(hi, xyz[fin, :2].max(0))
-    if not np.isfinite(lo).all():
-        lo, hi = np.zeros(2), np.ones(2)
-    # fine histogram, then the coarsest square-ish grid whose tiles hold <= tile_points
-    fine = 256
-    ext = np.maximum(hi - lo, 1e-300)
-    counts = np.zeros((fine, fine), dtype=np.int64)
-    for s in range(0, n, chunk):
-        xyz = np.asarray(points[s:s + chunk], dtype=np.float64)
-        fin = np.isfinite(xyz).all(1)
-        key = _tile_keys(xyz[fin, :2], lo, hi, (fine, fine))
-        counts += np.bincount(key, minlength=fine * fine).reshape(fine, fine)
-    n_fin = n - n_bad
-    aspect = float(ext[0] / ext[1]) if ext[1] > 0 else 1.0
-    t = max(1.0, n_fin / tile_points)
-    while tiles is None:
-        nx = int(min(fine, max(1, round(math.sqrt(t * aspect)))))
-        ny = int(min(fine, max(1, math.ceil(t / nx))))
-        edges_x = np.linspace(0, fine, nx + 1).round().astype(int)
-        edges_y = np.linspace(0, fine, ny + 1).round().astype(int)
-        block = np.add.reduceat(np.add.reduceat(counts, edges_x[:-1], 0), edges_y[:-1], 1)
-        if block.max(initial=0) <= tile_points or (nx >= fine and ny >= fine) or \
-                nx * ny >= 4096:
-            break
-        t *= 1.5
-    if tiles is not None:
-        nx, ny = (check_int(v, "tiles", low=1) for v in tiles)
-    shape = (nx, ny)
-    keys_all = np.empty(n, dtype=np.int64)
-    for s in range(0, n, chunk):
-        xyz = np.asarray(points[s:s + chunk], dtype=np.float64)
-        fin = np.isfinite(xyz).all(1)
-        kk = np.full(len(xyz), -1, dtype=np.int64)
-        kk[fin] = _tile_keys(xyz[fin, :2], lo, hi, shape)
-        keys_all[s:s + chunk] = kk
-    good = keys_all >= 0
-    order = np.flatnonzero(good)
-    order = order[np.argsort(keys_all[good], kind="stable")]
-    offsets = np.zeros(nx * ny + 1, dtype=np.int64)
-    offsets[1:] = np.cumsum(np.bincount(keys_all[good], minlength=nx * ny))
-    return TilePlan((float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])), shape,
-                    offsets, order, n, n_bad, int(budget or 2 * tile_points))
-
-
 def _load_region(points: Any, plan: TilePlan, t: int, h: float) -> tuple[np.ndarray, ...]:
     """Own and halo points of tile ``t`` for halo width ``h``: (index, xyz, own mask, box)."""
     x0, x1, y0, y1 = plan.tile_box(t)
@@ -330,12 +204,13 @@ def _load_region(points: Any, plan: TilePlan, t: int, h: float) -> tuple[np.ndar
         for jy in range(max(0, iy - ry), min(ny, iy + ry + 1)):
             parts.append(plan.members(jx * ny + jy))
     idx = np.sort(np.concatenate(parts)) if parts else np.zeros(0, dtype=np.int64)
-    xyz = np.asarray(points[idx], dtype=np.float64).reshape(-1, 3)
+    drop_pages(plan.order)
+    xyz = read_rows(points, idx)
     box = (x0 - h, x1 + h, y0 - h, y1 + h)
     keep = ((xyz[:, 0] >= box[0]) & (xyz[:, 0] <= box[1]) & (xyz[:, 1] >= box[2])
             & (xyz[:, 1] <= box[3]))
     idx, xyz = idx[keep], xyz[keep]
-    kx = _tile_keys(xyz[:, :2], plan.lo, plan.hi, plan.shape)
+    kx = tile_keys(xyz[:, :2], plan.lo, plan.hi, plan.shape)
     return idx, xyz, kx == t, box
 
 
@@ -489,40 +364,21 @@ def _setup_run(points, folder: Path, settings: TileSettings, memory_limit, tile_
         plan = TilePlan(tuple(meta["lo"]), tuple(meta["hi"]), tuple(meta["shape"]),
                         z["offsets"], np.load(folder / "order.npy", mmap_mode="r"),
                         n, int(meta["n_nonfinite"]), int(budget))
-        done = {int(r["tile"]) for r in read_jsonl(folder / "tiles.jsonl")}
+        done = {int(r["tile"]) for r in read_jsonl(folder / "tiles.jsonl") if "tile" in r}
         return plan, done, {f: None for f in FIELDS}
-    for stale in ("tiles.jsonl", "plan.json"):
+    for stale in ("tiles.jsonl", "plan.json", *(f"{f}.npy" for f in FIELDS)):
         (folder / stale).unlink(missing_ok=True)
-    plan = plan_tiles(points, tile_points=tile_points, budget=budget, tiles=tiles)
-    np.save(folder / "order.npy", plan.order)
+    # the order (8 bytes per point) bucketed straight into a file, read from there
+    plan = plan_tiles(points, tile_points=tile_points, budget=budget, tiles=tiles,
+                      order_file=folder / "order.npy")
     np.savez(folder / "plan.npz", offsets=plan.offsets)
-    # the order (8 bytes per point) read from disk from now on, not held in memory
-    plan = TilePlan(plan.lo, plan.hi, plan.shape, plan.offsets,
-                    np.load(folder / "order.npy", mmap_mode="r"), plan.n_points,
-                    plan.n_nonfinite, plan.budget)
-    maps = {}
-    for f, (cols, typ) in FIELDS.items():
-        maps[f] = np.lib.format.open_memmap(folder / f"{f}.npy", mode="w+", dtype=typ,
-                                            shape=(n, cols) if cols else (n,))
-    _fill_nonfinite(points, maps)
-    for m in maps.values():
-        m.flush()
+    create_tile_files(folder, FIELDS, int(plan.offsets[-1]))
     maps = {f: None for f in FIELDS}
     atomic_write_json(meta_path, {"fingerprint": key, "lo": plan.lo, "hi": plan.hi,
                                   "shape": plan.shape, "n_nonfinite": plan.n_nonfinite,
                                   "n_points": n, "settings": asdict(settings),
                                   "tile_points": int(tile_points), "budget": int(budget)})
     return plan, set(), maps
-
-
-def _fill_nonfinite(points, maps, chunk: int = 4_000_000) -> None:
-    n = int(points.shape[0])
-    for s in range(0, n, chunk):
-        xyz = np.asarray(points[s:s + chunk], dtype=np.float64)
-        bad = np.flatnonzero(~np.isfinite(xyz).all(1)) + s
-        if bad.size:
-            for f, m in maps.items():
-                m[bad] = Status.NONFINITE_INPUT if f == "status" else np.nan
 
 
 def _initial_halo(plan: TilePlan, settings: TileSettings) -> float:
@@ -535,35 +391,29 @@ def _initial_halo(plan: TilePlan, settings: TileSettings) -> float:
     return 2.0 * math.sqrt((settings.neighbours() + 1) / (math.pi * density))
 
 
-def _drop_pages(arr: Any) -> None:
-    """Let the kernel drop a memory map's pages from this process's resident set."""
-    arrays = getattr(arr, "columns", None) or (arr,)
-    for a in arrays:
-        mm = getattr(a, "_mmap", None)
-        if mm is not None and hasattr(mm, "madvise"):
-            try:
-                import mmap
-
-                mm.madvise(mmap.MADV_DONTNEED)
-            except (OSError, ValueError, AttributeError):  # pragma: no cover - platform
-                pass
+def _store(folder: Path, plan: TilePlan, t: int, res) -> None:
+    """Write tile ``t``'s rows into the tile-order result files."""
+    start, stop = int(plan.offsets[t]), int(plan.offsets[t + 1])
+    if res["index"].size != stop - start:
+        raise RuntimeError(f"tile {t}: {res['index'].size} points computed, the plan "
+                           f"gives it {stop - start}")
+    store_tile(folder, FIELDS, start, res)
 
 
-def _store(folder: Path, res) -> None:
-    """Write one tile's rows into the result files, mapped for this tile only.
-
-    So the written pages do not stay in the resident set.
-    """
-    idx = res["index"]
-    if idx.size:
-        for f in FIELDS:
-            m = np.load(folder / f"{f}.npy", mmap_mode="r+")
-            m[idx] = res[f]
-            m.flush()
-            del m
+def _timing(stage: str, t0: float, c0: float) -> dict:
+    return {"stage": stage, "seconds": time.perf_counter() - t0,
+            "cpu_seconds": time.process_time() - c0}
 
 
 def _finish(folder, maps, plan, n_resumed) -> TiledResult:
+    """Input-order result files from the tile-order ones (once), as read-only maps."""
+    if all((folder / f"tile_{f}.npy").exists() for f in FIELDS):
+        t0, c0 = time.perf_counter(), time.process_time()
+        reorder(folder, FIELDS, plan)
+        with JsonlLog(folder / "tiles.jsonl") as log:
+            log.append(_timing("reorder", t0, c0))
+    for f in FIELDS:  # left by a run stopped while deleting them
+        (folder / f"tile_{f}.npy").unlink(missing_ok=True)
     fields = {f: np.load(folder / f"{f}.npy", mmap_mode="r") for f in FIELDS}
     return TiledResult(folder, fields, plan.n_tiles, n_resumed)
 
@@ -628,20 +478,25 @@ def jets_tiled(
     """
     settings = settings or TileSettings()
     folder = Path(os.fspath(folder))
+    t0, c0 = time.perf_counter(), time.process_time()
     plan, done, maps = _setup_run(points, folder, settings, memory_limit, tile_points,
                                   _source_id(points, source), tiles)
     h0 = _initial_halo(plan, settings)
     todo = [t for t in range(plan.n_tiles) if t not in done]
+    fresh = not (folder / "tiles.jsonl").exists()
     with JsonlLog(folder / "tiles.jsonl") as log:
+        if fresh:
+            log.append(_timing("plan", t0, c0))
         bar = progress(total=plan.n_tiles, desc="tiles", quiet=quiet, initial=len(done))
         try:
             for t in todo:
+                t0, c0 = time.perf_counter(), time.process_time()
                 res = tile_task(points, plan, t, settings, h0)
-                _store(folder, res)
-                _drop_pages(points)
-                _drop_pages(plan.order)
+                _store(folder, plan, t, res)
                 log.append({"tile": t, "n": int(res["index"].size),
-                            "halo": float(res["halo"]), "loaded": int(res["loaded"])})
+                            "halo": float(res["halo"]), "loaded": int(res["loaded"]),
+                            "seconds": time.perf_counter() - t0,
+                            "cpu_seconds": time.process_time() - c0})
                 bar.update(1)
         finally:
             bar.close()
@@ -742,12 +597,14 @@ def jets_dask(
         h0 = _initial_halo(plan, settings)
         todo = [t for t in range(plan.n_tiles) if t not in done]
         n_workers = max(1, len(client.scheduler_info().get("workers", {})))
-        plan_f = client.scatter(plan, broadcast=True)
         # workers open a file themselves: the memory-mapped .npy behind ``points`` (e.g. the
         # decompressed LAZ cache) or ``source``; only without either is the array sent
         src = getattr(points, "filename", None) if isinstance(points, np.memmap) else None
         if src is None and source is not None:
             src = str(Path(os.fspath(source)).resolve())
+        # with a shared file system, the plan's order goes as its file, not 8 bytes a point
+        shared = replace(plan, order=NpyRows(folder.resolve() / "order.npy"))
+        plan_f = client.scatter(shared if src is not None else plan, broadcast=True)
         pts_f = None if src is not None else client.scatter(np.asarray(points),
                                                             broadcast=True)
         with JsonlLog(folder / "tiles.jsonl") as log:
@@ -762,10 +619,8 @@ def jets_dask(
                         break
                 for fut in pending:
                     res = fut.result()
-                    _store(folder, res)
-                    _drop_pages(points)
-                    _drop_pages(plan.order)
                     t = int(fut.key.rsplit("-", 1)[1])
+                    _store(folder, plan, t, res)
                     log.append({"tile": t, "n": int(res["index"].size),
                                 "halo": float(res["halo"]), "loaded": int(res["loaded"])})
                     bar.update(1)
