@@ -76,3 +76,12 @@ def test_main_asks_for_the_notice_unless_quiet(monkeypatch):
     monkeypatch.setattr(cli, "compile_notice", lambda stream=None: calls.append(1))
     assert cli.main(["work"]) == 0 and calls == [1]
     assert cli.main(["work", "--quiet"]) == 0 and calls == [1]
+
+
+def test_the_command_line_is_not_a_kernel_source():
+    # polygeo._numba_cache keys every cached kernel on the files that mention numba: were the
+    # command line one of them, each edit of it would recompile every kernel (15-40 s)
+    from pathlib import Path
+
+    text = Path(cli.__file__).read_bytes()
+    assert b"numba" not in text and b"njit" not in text
