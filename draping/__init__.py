@@ -12,7 +12,8 @@ imports another method.
   per-frame solves -> metrics, resumable run folders) behind ``polygeo drape-reference``.
 - ``draping.outputs`` - the run folder every drape method writes (frame PLYs, ``metrics.json``,
   strip and GIF) from plain arrays.
-- ``draping.body``, ``draping.motion``, ``draping.garments``, ``draping.skinning``,
+- ``draping.body``, ``draping.motion``, ``draping.garments`` (+ ``garment_fit``,
+  ``garment_checks``), ``draping.skinning``,
   ``draping.viz`` - the posable body, motions, garment templates, skinning and pictures.
 - methods: ``draping.gaps``, ``draping.onefit``, ``draping.garnet``, ``draping.fnopt``.
 

@@ -11,6 +11,11 @@ Body contact follows SNUG and GAPS: a body query gives, for the garment vertices
 distance ``d`` and outward normal ``n`` of the body; the collision energy is applied to the
 distance to the body's tangent plane ``n . (x - p)`` with ``p = x - d n`` (linear in ``x``),
 re-queried every ``requery_every`` iterations (the minimisation restarts its memory there).
+Dynamic frames add lagged Coulomb friction against the body (``SolverSettings.friction``,
+:func:`draping.physics.friction_energy`): the slip of each vertex in contact is measured
+against where the body under it moved (``body_motion``), its normal force is the collision
+penalty's at the last query. A dynamic frame starts from ``x0`` (default the free fall;
+:func:`project_outside` moves a start out of the body).
 
 Solvers (``SolverSettings.method``, implemented in ``draping._minimize`` on the fused kernels
 of :mod:`draping.physics.fused`):
