@@ -25,7 +25,7 @@ from draping.motion import MOTIONS, Motion, generate
 from draping.skinning import dense_body_weights, skinning_weights
 from polygeo.checks import as_tensor, check_choice, check_finite, check_int, check_shape
 
-from .settings import GapsSettings, TrainSettings
+from .settings import TRAIN_MOTIONS, GapsSettings, TrainSettings
 
 __all__ = [
     "ShapeCase",
@@ -39,6 +39,8 @@ __all__ = [
     "training_sequences",
     "sequence_of",
     "held_out_cases",
+    "stress_cases",
+    "check_case",
 ]
 
 
@@ -190,16 +192,34 @@ def sequence_of(body: AnnyBody, motion: str, frames: int, seed: int = 0, speed: 
 def training_sequences(settings: TrainSettings, body: AnnyBody) -> list[Sequence]:
     """The training motions.
 
-    Walk, arms, squat, jacks at each playback speed, and ``random_motions`` seeded random
-    motions (seeds < 1000); ``turn`` is held back.
+    Walk, arms, squat at each playback speed, and ``random_motions`` seeded random motions
+    (seeds < 1000); ``turn`` and ``jacks`` are held back (:data:`TRAIN_MOTIONS`).
     """
     out = []
-    for name in ("walk", "arms", "squat", "jacks"):
+    for name in (m for m in TRAIN_MOTIONS if m != "random"):
         for sp in settings.speeds:
             out.append(sequence_of(body, name, settings.motion_frames, 0, sp))
     for seed in range(settings.random_motions):
         out.append(sequence_of(body, "random", settings.motion_frames, seed, 1.0))
     return out
+
+
+def stress_cases(frames: int = 60) -> list[Case]:
+    """Held-back cases beyond the training range.
+
+    Jumping jacks (arms overhead), on a held-out shape and on the default shape.
+    """
+    frames = check_int(frames, "frames", low=3)
+    s = tuple(float(v) for v in random_shapes(1, 1004)[0])
+    return [Case("jacks", 0, 1.0, s, frames), Case("jacks", 0, 1.0, (0.5,) * 6, frames)]
+
+
+def check_case(frames: int = 20) -> Case:
+    """The fixed short sequence whose metrics a shipped model records.
+
+    The walk on a held-out shape, 20 frames (the shipped-model test redoes it).
+    """
+    return Case("walk", 0, 1.0, tuple(float(v) for v in random_shapes(1, 1005)[0]), frames)
 
 
 def held_out_cases(frames: int = 60) -> list[Case]:

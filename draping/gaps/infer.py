@@ -45,6 +45,7 @@ __all__ = [
     "Drape",
     "drape_sequence",
     "drape_motion",
+    "time_inference",
     "drape_case",
     "evaluate",
     "shipped_model_path",
@@ -265,6 +266,51 @@ def drape_motion(model: GapsModel, body: AnnyBody, motion: Motion, shape: Any = 
     c2 = time.process_time()
     return Drape(x, posed.vertices.float(), case,
                  {"model": c2 - c1, "with_posing": c2 - c0})
+
+
+def time_inference(model: GapsModel, body: AnnyBody, frames: int = 120, repeats: int = 3
+                   ) -> dict:
+    """CPU milliseconds per frame of draping a walk of ``frames`` frames (best of ``repeats``).
+
+    Returns
+    -------
+    dict
+        ``model``: GRU, output basis and garment skinning with the bone transforms given;
+        ``with_skeleton``: plus the forward kinematics of the pose (what a garment needs from
+        the body); ``with_body_mesh``: plus posing the full 13,348-vertex body mesh
+        (:meth:`draping.body.AnnyBody.pose`). The garment of the body shape
+        (:func:`draping.gaps.shape_case`, once per sequence) is not counted.
+    """
+    from draping.body import forward_kinematics
+    from draping.motion import generate
+    from polygeo.frames import axis_angle_to_matrix
+
+    m = generate("walk", body, frames)
+    vel = m.velocity
+    case = shape_case(model_garment(model), body, None)
+    rest_v = torch.as_tensor(case.garment.vertices, dtype=torch.float32)
+    bones, up = pose_bone_indices(body), up_vector()
+    _, joints = body.rest(case.shape)
+    best = {"model": float("inf"), "with_skeleton": float("inf"),
+            "with_body_mesh": float("inf")}
+    with torch.no_grad():
+        for _ in range(repeats):
+            c0 = time.process_time()
+            posed = body.pose(case.shape, m.rotations, m.translation)
+            c1 = time.process_time()
+            tr, _ = forward_kinematics(axis_angle_to_matrix(m.rotations),
+                                       joints.expand(frames, -1, -1), body.parents,
+                                       m.translation, body.levels)
+            c2 = time.process_time()
+            feats = pose_features(m.rotations[None], vel[None], case.shape[None], bones, up)
+            disp, _ = model(feats)
+            model.skin(rest_v + disp[0], tr)
+            c3 = time.process_time()
+            best["model"] = min(best["model"], c3 - c2)
+            best["with_skeleton"] = min(best["with_skeleton"], c3 - c1)
+            best["with_body_mesh"] = min(best["with_body_mesh"], c3 - c2 + c1 - c0)
+    del posed
+    return {k: 1000.0 * v / frames for k, v in best.items()}
 
 
 def drape_case(model: GapsModel, body: AnnyBody, case: Case) -> Drape:

@@ -37,11 +37,13 @@ POSE_BONES = (
     "upperarm01.L", "upperarm01.R", "lowerarm01.L", "lowerarm01.R",
 )
 
-#: Procedural motions trained on (``random`` with seeds below 1000).
-TRAIN_MOTIONS = ("walk", "arms", "squat", "jacks", "random")
-#: Held back from training: the ``turn`` motion, ``random`` with seeds >= 1000, and body shapes
-#: drawn with seeds >= 1000 (see :func:`draping.gaps.held_out_cases`).
-HELD_OUT_MOTIONS = ("turn",)
+#: Procedural motions trained on (``random`` with seeds below 1000). ``jacks`` is left out: its
+#: arms overhead make skinning alone stretch the armpits of a T-shirt to ~640 J per frame
+#: (walk: ~7 J), and those few windows dominated the loss; it is reported as a stress case.
+TRAIN_MOTIONS = ("walk", "arms", "squat", "random")
+#: Held back from training: the ``turn`` motion (and ``jacks``), ``random`` with seeds >= 1000,
+#: and body shapes drawn with seeds >= 1000 (see :func:`draping.gaps.held_out_cases`).
+HELD_OUT_MOTIONS = ("turn", "jacks")
 
 
 @dataclass(frozen=True)
@@ -153,6 +155,9 @@ class TrainSettings:
     seed : int
     checkpoint_every : int
         Steps between checkpoints.
+    init : str or None
+        A model file (:func:`draping.gaps.save_model`) of the same garment and architecture to
+        start from (fine-tuning) instead of the zero output basis.
     """
 
     model: GapsSettings = field(default_factory=GapsSettings)
@@ -171,9 +176,10 @@ class TrainSettings:
     collision_stiffness: float = 1e4
     collision_eps: float = 2e-3
     inext_weight: float = 2e8
-    query_radius: float = 0.05
+    query_radius: float = 0.02
     seed: int = 0
     checkpoint_every: int = 100
+    init: str | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.model, GapsSettings):

@@ -60,6 +60,14 @@ class Trainer:
         self.settings = settings
         self.body = AnnyBody.load() if body is None else body
         self.model, self.template = build_model(settings.model, self.body)
+        if settings.init is not None:
+            from .infer import load_model
+
+            start = load_model(settings.init)
+            if start.settings != settings.model:
+                raise ValueError(f"init: {settings.init} was trained with {start.settings}, "
+                                 f"expected {settings.model}")
+            self.model.load_state_dict(start.state_dict())
         self.opt = torch.optim.Adam(self.model.parameters(), lr=settings.lr)
         self.shapes = random_shapes(settings.shapes, settings.seed)
         self._cases: dict[int, ShapeCase] = {}

@@ -229,3 +229,23 @@ def test_rbf_beats_nearest_on_a_dress(body):
         out[method] = {k: float(np.mean(m[k])) for k in ("eps_e", "eps_c")}
     assert out["gaps"]["eps_e"] < out["snug"]["eps_e"]
     assert out["gaps"]["eps_c"] < out["snug"]["eps_c"]
+
+
+def test_held_out_cases_are_not_training_data():
+    """Held-out shapes are not in a training pool; held-out motions are not trained on."""
+    from draping.gaps import TRAIN_MOTIONS, check_case, held_out_cases, random_shapes, stress_cases
+
+    pool = random_shapes(256, 0)
+    for c in held_out_cases(10) + stress_cases(10) + [check_case()]:
+        s = torch.tensor(c.shape)
+        assert float((pool - s).abs().max(1).values.min()) > 1e-3 or c.shape == (0.5,) * 6
+        assert c.motion != "random" or c.seed >= 1000
+    assert "turn" not in TRAIN_MOTIONS and "jacks" not in TRAIN_MOTIONS
+
+
+def test_time_inference_reports_three_costs(body, trainer):
+    from draping.gaps import time_inference
+
+    t = time_inference(trainer.model, body, frames=4, repeats=1)
+    assert set(t) == {"model", "with_skeleton", "with_body_mesh"}
+    assert all(v > 0 for v in t.values())
