@@ -400,6 +400,24 @@ def _store(folder: Path, plan: TilePlan, t: int, res) -> None:
     store_tile(folder, FIELDS, start, res)
 
 
+class _HaloHint:
+    """Starting halo of the next tile: the largest final halo of the last 8 tiles.
+
+    Neighbouring tiles need about the same halo, so starting there saves most reloads; the
+    halo is still checked and grown per tile, so the hint changes no result.
+    """
+
+    def __init__(self, h0: float, records: list[dict]):
+        self.h0 = float(h0)
+        self.recent = [float(r["halo"]) for r in records if "halo" in r][-8:]
+
+    def add(self, h: float) -> None:
+        self.recent = [*self.recent[-7:], float(h)]
+
+    def __float__(self) -> float:
+        return max([self.h0, *self.recent])
+
+
 def _timing(stage: str, t0: float, c0: float) -> dict:
     return {"stage": stage, "seconds": time.perf_counter() - t0,
             "cpu_seconds": time.process_time() - c0}
@@ -481,7 +499,7 @@ def jets_tiled(
     t0, c0 = time.perf_counter(), time.process_time()
     plan, done, maps = _setup_run(points, folder, settings, memory_limit, tile_points,
                                   _source_id(points, source), tiles)
-    h0 = _initial_halo(plan, settings)
+    hint = _HaloHint(_initial_halo(plan, settings), read_jsonl(folder / "tiles.jsonl"))
     todo = [t for t in range(plan.n_tiles) if t not in done]
     fresh = not (folder / "tiles.jsonl").exists()
     with JsonlLog(folder / "tiles.jsonl") as log:
@@ -491,8 +509,9 @@ def jets_tiled(
         try:
             for t in todo:
                 t0, c0 = time.perf_counter(), time.process_time()
-                res = tile_task(points, plan, t, settings, h0)
+                res = tile_task(points, plan, t, settings, float(hint))
                 _store(folder, plan, t, res)
+                hint.add(res["halo"])
                 log.append({"tile": t, "n": int(res["index"].size),
                             "halo": float(res["halo"]), "loaded": int(res["loaded"]),
                             "seconds": time.perf_counter() - t0,
@@ -594,7 +613,7 @@ def jets_dask(
     try:
         plan, done, maps = _setup_run(points, folder, settings, memory_limit, tile_points,
                                       _source_id(points, source), tiles)
-        h0 = _initial_halo(plan, settings)
+        hint = _HaloHint(_initial_halo(plan, settings), read_jsonl(folder / "tiles.jsonl"))
         todo = [t for t in range(plan.n_tiles) if t not in done]
         n_workers = max(1, len(client.scheduler_info().get("workers", {})))
         # workers open a file themselves: the memory-mapped .npy behind ``points`` (e.g. the
@@ -614,13 +633,15 @@ def jets_dask(
                 pending = as_completed()
                 for t in it:
                     pending.add(client.submit(_remote_tile, src, pts_f, plan_f, t, settings,
-                                              h0, key=f"polygeo-tile-{folder.name}-{t}"))
+                                              float(hint),
+                                              key=f"polygeo-tile-{folder.name}-{t}"))
                     if pending.count() >= 2 * n_workers:
                         break
                 for fut in pending:
                     res = fut.result()
                     t = int(fut.key.rsplit("-", 1)[1])
                     _store(folder, plan, t, res)
+                    hint.add(res["halo"])
                     log.append({"tile": t, "n": int(res["index"].size),
                                 "halo": float(res["halo"]), "loaded": int(res["loaded"])})
                     bar.update(1)
@@ -628,7 +649,7 @@ def jets_dask(
                     nxt = next(it, None)
                     if nxt is not None:
                         pending.add(client.submit(_remote_tile, src, pts_f, plan_f, nxt,
-                                                  settings, h0,
+                                                  settings, float(hint),
                                                   key=f"polygeo-tile-{folder.name}-{nxt}"))
             finally:
                 bar.close()
