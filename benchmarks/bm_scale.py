@@ -255,7 +255,10 @@ def check_equal(laz: Path, work: Path, folder: Path, k: int, tiles: int = 0,
 
     pts = open_points(laz, cache_dir=work / "cache")
     n = int(pts.shape[0])
-    res = {f: np.load(folder / f"{f}.npy", mmap_mode="r") for f in ("k1", "normals", "status")}
+    names = ("k1", "normals", "status")
+    partial = (folder / "tile_k1.npy").exists()  # a run not finished: results in tile order
+    res = {f: np.load(folder / f"{'tile_' if partial else ''}{f}.npy", mmap_mode="r")
+           for f in names}
     out: dict = {"folder": str(folder)}
     if tiles == 0:
         ref = np.load(work / f"memory_{n}.npz")
@@ -295,17 +298,31 @@ def check_equal(laz: Path, work: Path, folder: Path, k: int, tiles: int = 0,
             assert (kd < edge).all(), "window too small for the neighbourhoods"
             rows.append(idx[own])
             refs.append({f: np.asarray(getattr(dq, f))[own] for f in res})
+            if partial:  # tile t's rows of the tile-order files, in the plan's order
+                off = np.load(folder / "plan.npz")["offsets"]
+                order = np.load(folder / "order.npy", mmap_mode="r")
+                seg = np.asarray(order[off[t]:off[t + 1]])
+                assert np.array_equal(seg, idx[own]), "plan and window disagree"
+                rows[-1] = np.arange(off[t], off[t + 1])
         out["tiles"] = [int(t) for t in pick]
-    dk1, dn, nstat, npts = 0.0, 0.0, 0, 0
+    dk1, dn, nstat, npts, nflip, nz_flip, dn_rest = 0.0, 0.0, 0, 0, 0, 0.0, 0.0
     for r, ref in zip(rows, refs):
         a = np.asarray(res["k1"][r])
         ok = np.isfinite(a) & np.isfinite(ref["k1"])
         dk1 = max(dk1, float(np.abs(a[ok] - ref["k1"][ok]).max(initial=0)))
-        dn = max(dn, float(np.abs(np.asarray(res["normals"][r]) - ref["normals"])[ok].max(
-            initial=0)))
+        nb, na = np.asarray(res["normals"][r])[ok], ref["normals"][ok]
+        dn = max(dn, float(np.abs(nb - na).max(initial=0)))
+        # normals of opposite sign: where "up" does not decide (n_z == 0 exactly), the
+        # in-memory call orients by propagation over the whole cloud, a tile over the tile
+        flip = (nb * na).sum(1) < 0
+        nflip += int(flip.sum())
+        nz_flip = max(nz_flip, float(np.abs(na[flip, 2]).max(initial=0)))
+        dn_rest = max(dn_rest, float(np.abs(nb[~flip] - na[~flip]).max(initial=0)))
         nstat += int((np.asarray(res["status"][r]).astype(int) != ref["status"]).sum())
         npts += r.size
-    out.update(points=npts, max_abs_k1=dk1, max_abs_normal=dn, status_mismatch=nstat)
+    out.update(points=npts, max_abs_k1=dk1, max_abs_normal=dn, status_mismatch=nstat,
+               normal_sign_flips=nflip, max_abs_nz_of_flipped=nz_flip,
+               max_abs_normal_unflipped=dn_rest)
     return out
 
 
