@@ -360,6 +360,12 @@ def main(argv: list[str] | None = None) -> int:
         "--jobs", type=int, default=1, help="runs in parallel, one process each (default 1)"
     )
     ap.add_argument(
+        "--only", nargs="+", default=None, metavar="LABEL",
+        help="run only these configurations (labels as in the record, e.g. 'polysft base' "
+        "'vertex base'; default: all of --quick or the full list); the chart then shows "
+        "only them",
+    )
+    ap.add_argument(
         "--from-partial",
         action="store_true",
         help="summarise the runs in <out>/bm_sft.partial.json (interrupted benchmark); only "
@@ -387,8 +393,11 @@ def main(argv: list[str] | None = None) -> int:
         for k in tqdm(sorted(set(kinds) | set(sweep_kinds)), desc="sequences", leave=False)
     }
 
+    chosen = [c for c in configs(quick) if a.only is None or c[0] in a.only]
+    if a.only is not None and not any(c[1] == "vertex" for c in chosen):
+        ap.error("--only: include a 'vertex ...' configuration (the baseline of the chart)")
     jobs = []
-    for label, fam, st, where in configs(quick):
+    for label, fam, st, where in chosen:
         on = (kinds if where is True else sweep_kinds if where is False
               else [k for k in kinds if k in where])
         for k in on:
@@ -427,7 +436,7 @@ def main(argv: list[str] | None = None) -> int:
 
     # aggregate per configuration over the sweep kinds (every configuration ran on them)
     agg = {}
-    for label, fam, st, _ in configs(quick):
+    for label, fam, st, _ in chosen:
         rs = [r for r in results if r["config"] == label and r["kind"] in sweep_kinds]
         if not rs:  # --from-partial: not run yet
             continue
@@ -490,6 +499,7 @@ def main(argv: list[str] | None = None) -> int:
     record = {
         "benchmark": "sft",
         "quick": quick,
+        "only": a.only,
         "frames_per_sequence": frames,
         "kinds": kinds,
         "sweep_kinds": sweep_kinds,
