@@ -240,7 +240,7 @@ def merge_records(path: Path, new: list[dict]) -> list[dict]:
 
 
 def check_equal(laz: Path, work: Path, folder: Path, k: int, tiles: int = 0,
-                margin: float = 20.0, seed: int = 0) -> dict:
+                margin: float = 20.0, seed: int = 0, ids=()) -> dict:
     """Compare a tiled run's results with in-memory ones (largest differences, status).
 
     ``tiles == 0``: against the whole-cloud in-memory run saved by the ``memory`` mode.
@@ -271,6 +271,8 @@ def check_equal(laz: Path, work: Path, folder: Path, k: int, tiles: int = 0,
         lo, hi, (nx, ny) = meta["lo"], meta["hi"], meta["shape"]
         done = [r["tile"] for r in read_jsonl(folder / "tiles.jsonl") if r.get("n")]
         pick = np.random.default_rng(seed).choice(done, min(tiles, len(done)), replace=False)
+        if ids:
+            pick = np.asarray(ids)
         rows, refs = [], []
         wx, wy = (hi[0] - lo[0]) / nx, (hi[1] - lo[1]) / ny
         for t in pick:
@@ -380,11 +382,13 @@ def main(argv=None) -> int:
                     help="with --laz: compare this tiled run folder with in-memory results")
     ap.add_argument("--check-tiles", type=int, default=0,
                     help="with --check: sample this many tiles (0: the saved in-memory run)")
+    ap.add_argument("--check-ids", type=int, nargs="*", default=(),
+                    help="with --check-tiles: these tiles instead of a random draw")
     args = ap.parse_args(argv)
     work = Path(args.work or (Path(args.out) / "bm_scale_work"))
     if args.check:
         print(json.dumps(check_equal(Path(args.laz), work, Path(args.check), args.k,
-                                     tiles=args.check_tiles)))
+                                     tiles=args.check_tiles, ids=args.check_ids)))
         return 0
     if args.one:
         print(json.dumps(run_one(args.one, Path(args.laz), work, args.k, keep=args.keep)))
