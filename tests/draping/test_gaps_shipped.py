@@ -25,7 +25,8 @@ def test_shipped_model_reproduces_its_record(name):
     model = load_model(name)
     assert model.garment_name == name
     assert path.stat().st_size < 8e6
-    assert rec["training"]["wall_minutes"] <= 60.0
+    total = rec.get("total_training", rec["training"])
+    assert total["cpu_minutes"] <= 60.0  # one thread; wall minutes are recorded beside it
     c = rec["check"]["case"]
     case = Case(c["motion"], c["seed"], c["speed"], tuple(c["shape"]), c["frames"])
     body = AnnyBody.load()
