@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import platform
 import time
 from pathlib import Path
 
@@ -43,13 +45,31 @@ def _plt():
     return plt
 
 
-def _step(name: str, n: int, net=None, lr=None):
+#: Unseen layouts of the ``general`` part: fractional (row, col) pins drawn once from a seeded
+#: generator of its own (the training pool draws grid vertices from ``torch`` seed 0).
+RANDOM_LAYOUTS = {
+    f"random-{k}": [tuple(round(float(v), 3) for v in pt)
+                    for pt in np.random.default_rng(2026 + k).random((n, 2))]
+    for k, n in ((1, 3), (2, 2), (3, 4))}
+
+#: L-BFGS variants of the ``lbfgs`` part: (label, keyword arguments of solve_lbfgs).
+LBFGS_VARIANTS = (("lbfgs m5 step 1", {"history": 5}),
+                  ("lbfgs m20 Armijo", {"history": 20, "line_search": True}),
+                  ("lbfgs m20 Armijo DCT", {"history": 20, "line_search": True,
+                                            "precondition": 0.5}))
+
+
+def _step(name: str, n: int, net=None, lr=None, **kw):
     if name == "fnopt":
         return lambda p, a0: solve_fnopt(net, p, n)
+    if name == "fnopt-line":
+        return lambda p, a0: solve_fnopt(net, p, n, step="line")
     if name == "pgd":
         return lambda p, a0: solvers.solve_pgd(p, n)
+    if name == "pcg":
+        return lambda p, a0: solvers.solve_pcg(p, n)
     if name == "lbfgs":
-        return lambda p, a0: solvers.solve_lbfgs(p, n, step=lr or 1.0)
+        return lambda p, a0: solvers.solve_lbfgs(p, n, step=lr or 1.0, **kw)
     lr = lr if lr is not None else DEFAULT_LR[name]
     return lambda p, a0: solvers.CLASSICAL[name](p, n, lr=lr)
 
@@ -84,13 +104,14 @@ def part_iters(args, net) -> dict:
            "reference_cpu_s": time.process_time() - t0,
            "reference_tol_m_s2": solvers.REFERENCE_TOL, "runs": []}
     plan = [("fnopt", n) for n in (3, 5, 8, 10, 15, 20)] + \
+        [("fnopt-line", 10)] + [("pcg", n) for n in (5, 10, 20)] + \
         [("pgd", n) for n in (10, 30)] + \
         [("lbfgs", n) for n in (10, 30, 100, 200)] + \
         [("adam", n) for n in (10, 100)] + [("gd", n) for n in (10, 100)]
     if args.only:
         plan = [p for p in plan if p[0] in args.only.split(",")]
     for name, n in plan:
-        if name == "fnopt" and net is None:
+        if name.startswith("fnopt") and net is None:
             continue
         r = _measure(s0, _step(name, n, net), ref, args.every)
         r.update(optimizer=name, iters=n)
@@ -118,13 +139,23 @@ def part_general(args, net) -> dict:
     rec = {"res": args.res, "frames": args.frames, "runs": []}
     cases = [("corners", args.motion, sp) for sp in (1.0, 1.2, 1.5, 2.0)] + \
         [(lay, args.motion, 1.0) for lay in ("diagonal", "mid-edges", "corner-centre",
-                                              "single")]
+                                              "single")] + \
+        [("diagonal", "rot-a", 1.5), ("single", "xyz", 2.0)] + \
+        [(lay, mo, 1.2) for lay, mo in zip(RANDOM_LAYOUTS, ("rot-b", "xy", "z"))]
+    if args.cases:
+        cases = [cases[int(i)] for i in args.cases.split(",")]
+    plan = [p.split(":") for p in args.plan.split(",")]
+    rec["random_layouts"] = RANDOM_LAYOUTS
     for layout, motion, speed in cases:
-        s = SimSettings(res=(args.res, args.res), handles=layout, motion=motion,
-                        frames=args.frames, speed=speed)
+        s = SimSettings(res=(args.res, args.res), handles=RANDOM_LAYOUTS.get(layout, layout),
+                        motion=motion, frames=args.frames, speed=speed)
+        t0 = time.process_time()
         ref = reference_rollout(s, REFS)
-        for name, n in (("fnopt", 10), ("pgd", 10), ("lbfgs", 100)):
-            if name == "fnopt" and net is None:
+        print(f"reference {layout} {motion} x{speed}: {time.process_time() - t0:.1f} s CPU",
+              flush=True)
+        for name, n in plan:
+            n = int(n)
+            if name.startswith("fnopt") and net is None:
                 continue
             r = _measure(s, _step(name, n, net), ref, args.every)
             r.update(layout=layout, motion=motion, speed=speed, optimizer=name, iters=n)
@@ -133,10 +164,43 @@ def part_general(args, net) -> dict:
     return rec
 
 
+def part_lbfgs(args, net) -> dict:
+    """L-BFGS variants over their iteration counts against FNOpt N = 10 (equal error)."""
+    s0 = SimSettings(res=(args.res, args.res), handles="corners", motion=args.motion,
+                     frames=args.frames, speed=args.speed)
+    ref = reference_rollout(s0, REFS)
+    rec = {"res": args.res, "motion": args.motion, "frames": args.frames, "speed": args.speed,
+           "runs": []}
+    plan = [("fnopt", "fnopt N", {}, (10,))] + \
+        [("lbfgs", lab, kw, its) for (lab, kw), its in zip(
+            LBFGS_VARIANTS, ((50, 100, 150, 200, 300), (30, 60, 100, 150, 200),
+                             (5, 10, 20, 30, 50)))]
+    for name, lab, kw, its in plan:
+        for n in its:
+            r = _measure(s0, _step(name, n, net, **kw), ref, args.every)
+            r.update(optimizer=name, variant=lab, iters=n)
+            rec["runs"].append(r)
+            print(json.dumps(r), flush=True)
+    fn = [r for r in rec["runs"] if r["optimizer"] == "fnopt"][0]
+    rec["equal_error"] = []
+    for lab, _ in LBFGS_VARIANTS:
+        rs = [r for r in rec["runs"] if r.get("variant") == lab and "e_cd" in r]
+        hit = next((r for r in rs if r["e_cd"] <= fn["e_cd"]), None)
+        rec["equal_error"].append({
+            "variant": lab, "fnopt_e_cd": fn["e_cd"], "fnopt_cpu_ms": fn["cpu_ms_per_frame"],
+            "iters_needed": hit["iters"] if hit else None,
+            "lbfgs_cpu_ms": hit["cpu_ms_per_frame"] if hit else None,
+            "speedup": hit["cpu_ms_per_frame"] / fn["cpu_ms_per_frame"] if hit else None,
+            "note": None if hit else f"not reached within {rs[-1]['iters'] if rs else 0} "
+                                     "iterations"})
+    return rec
+
+
 def chart_iters(rec: dict, path: Path) -> None:
     curves, xs = {}, {}
-    for name in ("fnopt", "pgd", "lbfgs", "adam", "gd"):
-        rs = [r for r in rec["runs"] if r["optimizer"] == name and "e_cd" in r]
+    names = sorted({r.get("variant", r["optimizer"]) for r in rec["runs"]})
+    for name in names:
+        rs = [r for r in rec["runs"] if r.get("variant", r["optimizer"]) == name and "e_cd" in r]
         if rs:
             curves[f"{name} (N={','.join(str(r['iters']) for r in rs)})"] = \
                 [r["e_cd"] for r in rs]
@@ -160,7 +224,8 @@ def chart_iters(rec: dict, path: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--part", choices=("iters", "super", "general", "sweep"), default="iters")
+    ap.add_argument("--part", choices=("iters", "super", "general", "sweep", "lbfgs"),
+                    default="iters")
     ap.add_argument("--res", type=int, default=32)
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--motion", default="xy")
@@ -168,6 +233,10 @@ def main() -> None:
     ap.add_argument("--every", type=int, default=3, help="metric frame stride")
     ap.add_argument("--only", default="", help="comma-separated optimisers (iters part)")
     ap.add_argument("--weights", default=None)
+    ap.add_argument("--cases", default="", help="general part: comma-separated case numbers")
+    ap.add_argument("--plan", default="fnopt:10,pcg:10,pgd:10,lbfgs:100",
+                    help="general part: optimiser:iterations, comma-separated")
+    ap.add_argument("--tag", default="", help="suffix of the output names")
     args = ap.parse_args()
     torch.set_num_threads(1)
     OUT.mkdir(parents=True, exist_ok=True)
@@ -189,9 +258,13 @@ def main() -> None:
         return
     rec = {"part": args.part, "args": vars(args), "torch": torch.__version__,
            "note": "CPU times, 1 thread, shared busy 2-core machine"}
-    rec.update({"iters": part_iters, "super": part_super, "general": part_general}[
-        args.part](args, net))
+    rec.update({"iters": part_iters, "super": part_super, "general": part_general,
+                "lbfgs": part_lbfgs}[args.part](args, net))
+    rec.update(machine=platform.processor() or platform.machine(), python=platform.python_version(),
+               date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+               load_average=os.getloadavg())
     tag = f"{args.part}_{args.res}" if args.part != "super" else "super"
+    tag += f"_{args.tag}" if args.tag else ""
     path = OUT / f"bm_fnopt_{tag}.json"
     if args.part == "iters" and path.is_file():      # merge with the runs of other invocations
         old = json.loads(path.read_text())
@@ -202,7 +275,7 @@ def main() -> None:
                 + rec["runs"]
             rec["runs"].sort(key=lambda r: (r["optimizer"], r["iters"]))
     path.write_text(json.dumps(rec, indent=1))
-    if args.part == "iters":
+    if args.part in ("iters", "lbfgs"):
         chart_iters(rec, OUT / f"bm_fnopt_{tag}.png")
     elif args.part == "general":
         rs = [r for r in rec["runs"] if "e_cd" in r]

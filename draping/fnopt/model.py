@@ -25,7 +25,7 @@ from torch import nn
 from .solvers import StepProblem
 
 __all__ = ["FNOConfig", "SpectralConv2d", "FNO", "features", "fno_direction", "fnopt_iteration",
-           "solve_fnopt",
+           "subspace_iteration", "solve_fnopt", "STEPS",
            "N_INPUTS", "load_pretrained", "n_parameters", "stiffness_numbers", "WEIGHTS"]
 
 #: Input channels: preconditioned gradient (3), the previous one (3), previous update (3), mask (1),
@@ -168,17 +168,50 @@ def fnopt_iteration(model: FNO, p: StepProblem, pre, a, z_prev, da_prev,
     return a + da, z, da, g
 
 
-def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None) -> torch.Tensor:
-    """Algorithm 2: ``iters`` learned updates from ``a = 0``; returns the accelerations."""
+#: Step rules of :func:`solve_fnopt`.
+STEPS = ("line", "subspace")
+
+
+def subspace_iteration(model: FNO, p: StepProblem, pre, a, z_prev, da_prev):
+    """One inner iteration with a subspace step: ``(a + Delta a, z, Delta a, g)``.
+
+    The FNO's direction ``d`` (:func:`fno_direction`), the preconditioned steepest descent
+    ``-z`` and the previous update span the subspace over which the quadratic model of
+    ``L_cloth`` is minimised (three Hessian-vector products): never worse per iteration, in that
+    model, than the FNO's line step or than preconditioned descent, and with the previous update
+    in the span, a conjugate-gradient-like memory.
+    """
+    _, g, hvp = p.grad_hvp(a)
+    z = pre(g) * p.free
+    d = fno_direction(model, p, z, z_prev, da_prev)
+    da = p.subspace_step(g, [d, -z, da_prev], hvp)
+    return a + da, z, da, g
+
+
+def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None,
+                step: str = "subspace") -> torch.Tensor:
+    """Algorithm 2: ``iters`` learned updates from ``a = 0``; returns the accelerations.
+
+    ``step``: ``"subspace"`` (default, :func:`subspace_iteration`) or ``"line"`` (the exact
+    line step along the FNO's direction, :func:`fnopt_iteration`, as in training).
+
+    Raises
+    ------
+    ValueError
+        On an unknown ``step``.
+    """
     from .solvers import laplace_preconditioner
 
+    if step not in STEPS:
+        raise ValueError(f"step: expected one of {list(STEPS)}, got {step!r}")
+    it = subspace_iteration if step == "subspace" else fnopt_iteration
     pre = laplace_preconditioner(p)
     a = torch.zeros_like(p.x_prev) if a0 is None else (a0 * p.free).clone()
     z_prev = torch.zeros_like(a)
     da = torch.zeros_like(a)
     for _ in range(iters):
         with torch.no_grad():
-            a, z_prev, da, _ = fnopt_iteration(model, p, pre, a, z_prev, da)
+            a, z_prev, da, _ = it(model, p, pre, a, z_prev, da)
     return p.compose(a)
 
 

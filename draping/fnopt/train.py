@@ -39,7 +39,8 @@ from .solvers import (
     solve_reference,
 )
 
-__all__ = ["TrainSettings", "Pool", "train", "validation_set", "evaluate"]
+__all__ = ["TrainSettings", "HANDLE_DISTRIBUTIONS", "random_handles", "Pool", "train",
+           "validation_set", "evaluate"]
 
 
 @dataclass(frozen=True)
@@ -48,7 +49,9 @@ class TrainSettings:
 
     The defaults reproduce the shipped ``draping/data/fnopt_model.pt``: width 16 and 8 modes
     from the parsimony sweep (``benchmarks/fnopt_sweep.py``: widths 16 and 32 with 8 modes and
-    width 32 with 4 modes reached the same validation sub-optimality), 7000 steps.
+    width 32 with 4 modes reached the same validation sub-optimality), 7000 steps, handle sets
+    drawn by :func:`random_handles` (``handles="random"``; ``"corners-interior"`` was the
+    distribution of the first weights).
     """
 
     width: int = 16
@@ -67,9 +70,70 @@ class TrainSettings:
     size_min: float = 0.3
     size_max: float = 1.5
     reset_prob: float = 0.02
+    handles: str = "random"
     seed: int = 0
     eval_every: int = 1000
     checkpoint_every: int = 500
+
+    def __post_init__(self) -> None:
+        if self.handles not in HANDLE_DISTRIBUTIONS:
+            raise ValueError(f"handles: expected one of {list(HANDLE_DISTRIBUTIONS)}, got "
+                             f"{self.handles!r}")
+
+
+#: Handle distributions of the training pool (see :func:`random_handles`).
+HANDLE_DISTRIBUTIONS = ("random", "corners-interior")
+
+
+def random_handles(gen: torch.Generator, res: int, kind: str = "random") -> torch.Tensor:
+    """A random set of pinned vertices ``(K, 2)`` (row, col) on a ``res x res`` grid.
+
+    ``"random"``: the two top corners with probability 0.15; else 1 to 4 handles, each a grid
+    corner (35 %), a point on a random boundary edge (35 %) or an interior point (30 %), and
+    with probability 0.1 one of them grown into a run of 2 to ``res / 4`` vertices along its
+    row or column; so the five named layouts are ordinary members of the distribution.
+    ``"corners-interior"`` (the first shipped weights): the two top corners with probability
+    0.4, else 1 to 3 uniform points.
+
+    Raises
+    ------
+    ValueError
+        On an unknown ``kind``.
+    """
+    if kind not in HANDLE_DISTRIBUTIONS:
+        raise ValueError(f"handles: expected one of {list(HANDLE_DISTRIBUTIONS)}, got {kind!r}")
+
+    def u() -> float:
+        return float(torch.rand(1, generator=gen))
+
+    m = res - 1
+    if kind == "corners-interior":
+        if u() < 0.4:
+            pts = [(0, 0), (0, m)]
+        else:
+            pts = [(round(u() * m), round(u() * m)) for _ in range(1 + int(u() * 3))]
+        return torch.unique(torch.tensor(pts), dim=0)
+    if u() < 0.15:
+        return torch.tensor([[0, 0], [0, m]])
+    pts = []
+    for _ in range(1 + int(u() * 4)):
+        v = u()
+        if v < 0.35:
+            pts.append((m * int(u() < 0.5), m * int(u() < 0.5)))
+        elif v < 0.7:
+            t, side = round(u() * m), int(u() * 4)
+            pts.append(((0, t), (m, t), (t, 0), (t, m))[side])
+        else:
+            pts.append((round(u() * m), round(u() * m)))
+    if u() < 0.1:
+        r0, c0 = pts[0]
+        n = 2 + int(u() * max(res // 4 - 1, 1))
+        along_row = u() < 0.5
+        for k in range(1, n):
+            rr, cc = (r0, c0 + k) if along_row else (r0 + k, c0)
+            if rr <= m and cc <= m:
+                pts.append((rr, cc))
+    return torch.unique(torch.tensor(pts), dim=0)
 
 
 class Pool:
@@ -119,14 +183,7 @@ class Pool:
             nrm = torch.tensor([0.0, 1.0, 0.0]) if orient == "vertical" else \
                 torch.tensor([0.0, 0.0, 1.0])
             x = x + 0.05 * size * (2 * self._u(1) - 1) * bump[..., None] * nrm
-        u = float(self._u(1))
-        if u < 0.4:
-            pts = cloth.LAYOUTS["corners"]
-        else:
-            k = 1 + int(self._u(1) * 3)
-            pts = [(float(self._u(1)), float(self._u(1))) for _ in range(k)]
-        idx = torch.unique(torch.tensor([[round(p[0] * (r - 1)), round(p[1] * (r - 1))]
-                                         for p in pts]), dim=0)
+        idx = random_handles(self.gen, r, s.handles)
         self.hmask[i] = cloth.handle_mask(idx, r, r)
         self.hrest[i] = x * self.hmask[i][..., None]
         self.x[i] = x
@@ -138,6 +195,9 @@ class Pool:
         else:
             axes = torch.eye(3)
             ax = axes[2] if float(self._u(1)) < 0.5 else axes[1]
+            if s.handles == "random" and float(self._u(1)) < 0.4:     # any axis
+                ax = torch.randn(3, generator=self.gen)
+                ax = ax / ax.norm()
             self.vec[i] = ax * (2 * self._u(1) - 1) * 0.5 * math.pi
         speed = math.exp(math.log(0.5) + float(self._u(1)) * math.log(2.5 / 0.5))
         self.duration[i] = 2.0 / speed

@@ -233,3 +233,54 @@ def test_repulsion_pushes_close_non_adjacent_vertices_apart():
     assert float(g[5, :, 1].sum()) < 0
     far = cloth.rest_positions(sheet, dtype=torch.float64)
     assert cloth.repulsion_pairs(far, 0.5 * sheet.hx).shape[0] == 0
+
+
+def _step_problem(n=10, dtype=torch.float64):
+    sheet = Sheet(n, n)
+    ro = solvers.rollout(sheet, Material(), "corner-centre", "xyz", 5,
+                         lambda p, a0: solvers.solve_pgd(p, 10), dtype=dtype)
+    idx = cloth.handle_indices("corner-centre", n, n)
+    x = ro.positions[-2][None]
+    v = (ro.positions[-2] - ro.positions[-3])[None] / handles.DT
+    return solvers.make_problem(x, v, idx, ro.positions[-1][None][:, idx[:, 0], idx[:, 1]],
+                                sheet.hx, sheet.hy, Material().tensors(1, dtype))
+
+
+def test_subspace_step_minimises_the_quadratic_model_over_the_span():
+    p = _step_problem()
+    g0 = torch.Generator().manual_seed(0)
+    a = 0.1 * torch.randn(p.x_prev.shape, generator=g0, dtype=torch.float64) * p.free
+    _, g, hvp = p.grad_hvp(a)
+    d1 = -g / p.mass[..., None]
+    d2 = torch.randn(p.x_prev.shape, generator=g0, dtype=torch.float64) * p.free
+
+    def model(s):                     # quadratic model of L(a + s) - L(a)
+        return float((g * s).sum() + 0.5 * (s * hvp(s)).sum())
+
+    # one direction: the exact line step
+    s1 = p.subspace_step(g, [d1], hvp)
+    assert torch.allclose(s1, p.exact_step(g, d1, hvp) * d1, rtol=1e-9, atol=1e-15)
+    # two directions: the model's gradient is orthogonal to both (independent check) ...
+    s = p.subspace_step(g, [d1, d2], hvp)
+    r = g + hvp(s)
+    for d in (d1, d2):
+        assert abs(float((r * d).sum())) < 1e-8 * float(g.norm() * d.norm())
+    # ... and no combination on a grid of coefficients does better
+    c1 = float((s * d1).sum() / (d1 * d1).sum())
+    best = model(s)
+    for t1 in (0.5, 0.9, 1.1, 2.0):
+        for t2 in (-1.0, 0.0, 1.0):
+            assert best <= model(t1 * c1 * d1 + t2 * 1e-3 * d2) + 1e-12
+    # a zero or repeated direction changes nothing
+    z = torch.zeros_like(d1)
+    assert torch.allclose(p.subspace_step(g, [d1, z, d2, d1], hvp), s, rtol=1e-6, atol=1e-12)
+
+
+def test_pcg_lowers_the_loss_at_least_as_well_as_preconditioned_descent():
+    p = _step_problem(16, torch.float32)
+    l0 = float(p.loss(torch.zeros_like(p.x_prev))[0])
+    l_star = float(p.loss(solvers.solve_reference(p))[0])
+    l_pgd = float(p.loss(solvers.solve_pgd(p, 10))[0])
+    l_pcg = float(p.loss(solvers.solve_pcg(p, 10))[0])
+    assert l_star - 1e-6 <= l_pcg < l0
+    assert l_pcg <= l_pgd + 1e-6 * abs(l_pgd)

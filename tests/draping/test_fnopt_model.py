@@ -73,6 +73,27 @@ def test_trained_optimizer_lowers_the_loss_within_10_iterations(n):
     assert (losses[-1] - l_star) < 0.5 * (l0 - l_star)
 
 
+def test_trained_optimizer_lowers_the_loss_on_an_unseen_random_layout_at_64():
+    """Three random pinned vertices (none of the five named layouts), a rotation, at 64^2."""
+    net = _pretrained()
+    n = 64
+    g = torch.Generator().manual_seed(19)
+    idx = torch.unique(torch.randint(0, n, (3, 2), generator=g), dim=0)
+    assert idx.shape[0] == 3
+    named = {tuple(map(tuple, cloth.handle_indices(k, n, n).tolist())) for k in cloth.LAYOUTS}
+    assert tuple(map(tuple, idx.tolist())) not in named
+    p = _mid_rollout_problem(n, layout=idx, motion="rot-b", frames=6)
+    zero = torch.zeros_like(p.x_prev)
+    l0 = float(p.loss(zero)[0])
+    l_star = float(p.loss(solvers.solve_reference(p))[0])
+    l10 = float(p.loss(model.solve_fnopt(net, p, 10))[0])
+    assert l10 < l0
+    # most of the way to the converged minimum, and better than 10 preconditioned descents
+    l_pgd = float(p.loss(solvers.solve_pgd(p, 10))[0])
+    assert (l10 - l_star) < 0.5 * (l0 - l_star)
+    assert l10 < l_pgd
+
+
 @pytest.mark.slow
 def test_500_frame_rollout_at_100_is_finite_and_bounded():
     net = _pretrained()
@@ -147,3 +168,42 @@ def test_viz_gif_and_strip(tmp_path):
     assert Image.open(tmp_path / "a.png").width == 2 * imgs[0].width
     with pytest.raises(ValueError):
         viz.write_gif([], tmp_path / "b.gif")
+
+
+def test_random_handle_distribution_covers_corners_edges_and_interior():
+    from draping.fnopt.train import TrainSettings, random_handles
+
+    n = 32
+    g = torch.Generator().manual_seed(0)
+    named = {tuple(map(tuple, cloth.handle_indices(k, n, n).tolist())): k for k in cloth.LAYOUTS}
+    seen, kinds, counts = set(), set(), set()
+    for _ in range(3000):
+        idx = random_handles(g, n)
+        assert idx.ndim == 2 and idx.shape[1] == 2 and int(idx.min()) >= 0
+        assert int(idx.max()) <= n - 1
+        assert len({tuple(p) for p in idx.tolist()}) == idx.shape[0]      # unique
+        counts.add(idx.shape[0])
+        seen.add(named.get(tuple(map(tuple, idx.tolist())), "other"))
+        for r, c in idx.tolist():
+            on_r, on_c = r in (0, n - 1), c in (0, n - 1)
+            kinds.add("corner" if on_r and on_c else "edge" if on_r or on_c else "interior")
+    assert {"corners", "diagonal", "other"} <= seen          # named layouts are ordinary draws
+    assert kinds == {"corner", "edge", "interior"}
+    assert {1, 2, 3, 4} <= counts and max(counts) > 4        # runs along a row or column
+    with pytest.raises(ValueError, match="handles"):
+        random_handles(g, n, "everywhere")
+    with pytest.raises(ValueError, match="handles"):
+        TrainSettings(handles="everywhere")
+
+
+def test_solve_fnopt_step_rules():
+    net = model.FNO(model.FNOConfig(width=8, modes=4, layers=2, projection=8))
+    p = _mid_rollout_problem(16, frames=4)
+    l0 = float(p.loss(torch.zeros_like(p.x_prev))[0])
+    for step in model.STEPS:
+        assert float(p.loss(model.solve_fnopt(net, p, 5, step=step))[0]) < l0
+    # the subspace step contains preconditioned descent: an untrained FNO cannot make it worse
+    l_sub = float(p.loss(model.solve_fnopt(net, p, 10))[0])
+    assert l_sub <= float(p.loss(solvers.solve_pgd(p, 10))[0]) * (1 + 1e-6)
+    with pytest.raises(ValueError, match="step"):
+        model.solve_fnopt(net, p, 3, step="newton")
