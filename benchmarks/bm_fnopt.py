@@ -171,10 +171,9 @@ def part_lbfgs(args, net) -> dict:
     ref = reference_rollout(s0, REFS)
     rec = {"res": args.res, "motion": args.motion, "frames": args.frames, "speed": args.speed,
            "runs": []}
+    counts = [tuple(int(n) for n in part.split(",")) for part in args.lbfgs_iters.split(";")]
     plan = [("fnopt", "fnopt N", {}, (10,))] + \
-        [("lbfgs", lab, kw, its) for (lab, kw), its in zip(
-            LBFGS_VARIANTS, ((50, 100, 150, 200, 300), (30, 60, 100, 150, 200),
-                             (5, 10, 20, 30, 50)))]
+        [("lbfgs", lab, kw, its) for (lab, kw), its in zip(LBFGS_VARIANTS, counts)]
     for name, lab, kw, its in plan:
         for n in its:
             r = _measure(s0, _step(name, n, net, **kw), ref, args.every)
@@ -237,6 +236,8 @@ def main() -> None:
     ap.add_argument("--plan", default="fnopt:10,pcg:10,pgd:10,lbfgs:100",
                     help="general part: optimiser:iterations, comma-separated")
     ap.add_argument("--tag", default="", help="suffix of the output names")
+    ap.add_argument("--lbfgs-iters", default="50,100,150,200,300;30,60,100,150,200;5,10,20,30,50",
+                    help="lbfgs part: iteration counts per variant (';' between variants)")
     args = ap.parse_args()
     torch.set_num_threads(1)
     OUT.mkdir(parents=True, exist_ok=True)

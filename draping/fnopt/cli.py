@@ -101,7 +101,7 @@ def register_simulate(sub: argparse._SubParsersAction) -> None:
         description="Simulate a grid cloth held by handles (backward Euler, L_cloth minimised "
         "per frame by the chosen optimiser). Writes OUT/meshes/000000.ply ..., "
         "OUT/metrics.json (per frame e_CD x 1e3 and e_3D against the converged reference "
-        "rollout, L_cloth in J, ms per frame), OUT/errors.png and OUT/rollout.gif.",
+        "rollout, L_cloth in J, wall and CPU ms per frame), OUT/errors.png and OUT/rollout.gif.",
     )
     p.add_argument("--res", type=_res, default=(64, 64), help="N or HxW grid (default 64)")
     p.add_argument("--size", type=float, default=1.0, help="sheet width, m (default 1)")

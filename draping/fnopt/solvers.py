@@ -386,13 +386,18 @@ CLASSICAL = {"gd": solve_gd, "adam": solve_adam, "lbfgs": solve_lbfgs}
 
 @dataclass
 class Rollout:
-    """A rollout: positions ``(F+1, H, W, 3)`` (m), per-frame ``L_cloth`` (J), ms per frame."""
+    """A rollout: positions ``(F+1, H, W, 3)`` (m), per-frame ``L_cloth`` (J), ms per frame.
+
+    ``ms``: wall-clock milliseconds of the optimiser per frame; ``cpu_ms``: CPU milliseconds of
+    the calling thread (the figure to compare on a shared machine).
+    """
 
     positions: torch.Tensor
     loss: list
     ms: list
     handles: torch.Tensor
     accel: torch.Tensor | None = None
+    cpu_ms: list | None = None
 
 
 def rollout(sheet: cloth.Sheet, material: cloth.Material, layout, motion: str, frames: int,
@@ -418,7 +423,7 @@ def rollout(sheet: cloth.Sheet, material: cloth.Material, layout, motion: str, f
     v = torch.zeros_like(x)
     mat = material.tensors(1, dtype)
     out = [x[0].clone()]
-    losses, ms = [], []
+    losses, ms, cpu_ms = [], [], []
     a_prev = None
     delta = min(sheet.hx, sheet.hy)
     for f in range(1, frames + 1):
@@ -430,9 +435,10 @@ def rollout(sheet: cloth.Sheet, material: cloth.Material, layout, motion: str, f
             def extra(xx, pairs=pairs):
                 return cloth.repulsion_energy(xx[0], pairs, delta, repulsion)[None]
         p = make_problem(x, v, idx, target, sheet.hx, sheet.hy, mat, dt, extra)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         a = step(p, a_prev if warm_start else None)
         ms.append(1e3 * (time.perf_counter() - t0))
+        cpu_ms.append(1e3 * (time.thread_time() - c0))
         with torch.no_grad():
             p64 = make_problem(x.double(), v.double(), idx, target.double(), sheet.hx,
                                sheet.hy, material.tensors(1, torch.float64), dt)
@@ -444,4 +450,4 @@ def rollout(sheet: cloth.Sheet, material: cloth.Material, layout, motion: str, f
         out.append(x[0].clone())
         if progress is not None:
             progress()
-    return Rollout(torch.stack(out), losses, ms, traj)
+    return Rollout(torch.stack(out), losses, ms, traj, cpu_ms=cpu_ms)

@@ -121,7 +121,7 @@ def test_simulate_cli_writes_meshes_metrics_and_pictures(tmp_path):
     m = json.loads((out / "metrics.json").read_text())
     assert len(m["frames"]) == 3
     for rec in m["frames"]:
-        assert {"e_cd", "e_3d", "L_cloth", "ms"} <= set(rec)
+        assert {"e_cd", "e_3d", "L_cloth", "ms", "cpu_ms"} <= set(rec)
         assert rec["e_cd"] >= 0 and np.isfinite(rec["L_cloth"])
     assert len(list((out / "meshes").glob("*.ply"))) == 4
     assert (out / "errors.png").stat().st_size > 0
