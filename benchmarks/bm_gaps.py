@@ -21,7 +21,15 @@ Sections (each a function):
   T-shirt (``--ablation-garments``), same steps.
 * ``sweep``: GAPS T-shirt over GRU width x depth, same steps; parsimony = the network with
   the fewest parameters whose held-out E_dist is within 10 % of the best.
+* ``given``: models trained elsewhere on their own budget (``--extra-model PATH``, e.g. the
+  weights h20 shipped), scored on the same cases and reported beside the methods' rows,
+  marked ``not_equal_budget``.
 * ``charts``: the PNGs, from the JSON.
+
+Several runs may share one JSON (one garment each, say, run side by side): sections are
+merged per garment under a file lock. ``--only-train`` trains what the sections need and
+stops; ``--wait-models`` solves the references and then waits for those models (so that
+training and evaluation can run in separate processes).
 
 Budget: by default every compared model is trained for the steps of the shipped GAPS model
 of its garment (its recorded ``steps``; :class:`draping.gaps.TrainSettings` default where none
@@ -59,7 +67,7 @@ sys.path.insert(0, str(HERE.parent / "datasets"))
 import make_gaps_eval as ev  # noqa: E402
 from run_env import environment, finish  # noqa: E402
 
-SECTIONS = ("methods", "ablations", "sweep", "charts")
+SECTIONS = ("methods", "ablations", "sweep", "given", "charts")
 METHOD_NAMES = ("gaps", "snug", "ncs")
 ABLATIONS = ("schedule", "one", "none")
 SWEEP = ((32, 1), (64, 1), (64, 2), (128, 2), (256, 2), (128, 4))
@@ -312,11 +320,16 @@ def prepare_all(args, cases, cache: Path) -> dict:
     jobs = []
     if {"methods", "ablations", "sweep"} & set(args.sections) and not args.only_train:
         jobs += [(_ref_job, (c, cache, True)) for c in cases]
+    missing = []
     for key, (st, steps, _) in need.items():
         shipped = key[1:] in (("gaps",), ("gaps", "schedule")) and use_shipped(key[0], args)
         if not shipped and not model_path(st, steps, cache).is_file():
-            jobs.append((_train_job, (st, steps, cache, args.quiet)))
+            missing.append(model_path(st, steps, cache))
+            if not args.wait_models:
+                jobs.append((_train_job, (st, steps, cache, args.quiet)))
     run_jobs(jobs, args.workers)
+    while args.wait_models and not all(p.is_file() for p in missing):
+        time.sleep(20)
     return need
 
 
@@ -340,6 +353,23 @@ def section_methods(args, ev_: Evaluator, need: dict, cache: Path) -> dict:
         out[g] = {"models": rows, "reference": ev_.reference_summary(g),
                   "steps": budget_of(g, args.steps)}
         _print_rows(g, rows)
+    return out
+
+
+def section_given(args, ev_: Evaluator, need: dict, cache: Path) -> dict:
+    """Models given with ``--extra-model`` (trained on their own budget), per garment."""
+    from draping.gaps import load_model
+
+    out = {}
+    for path in args.extra_model:
+        g = load_model(path).settings.garment
+        if g in args.garments:
+            r = model_record(Path(path), ev_, "")
+            r["label"] = f"{r['method']} ({r['steps']} steps, given)"
+            r["not_equal_budget"] = True
+            out.setdefault(g, []).append(r)
+    for g, rows in out.items():
+        _print_rows(g + " (given models)", rows)
     return out
 
 
@@ -409,10 +439,10 @@ def chart_methods(res: dict, path: Path) -> None:
     """Error vs inference ms and vs training CPU minutes, one marker per method, per garment."""
     import matplotlib.pyplot as plt
 
-    gs = [g for g in res if g in ev.GARMENTS]
+    gs = [g for g in res if g in ev.GARMENTS and "models" in res[g]]
     fig, axes = plt.subplots(2, len(gs), figsize=(4.2 * len(gs), 7), squeeze=False, dpi=100)
     for j, g in enumerate(gs):
-        for r in res[g]["models"]:
+        for r in res[g].get("models", []) + res[g].get("given", []):
             mk = MARKERS.get(r["method"], "x")
             face = "none" if r.get("not_equal_budget") else None
             for i, xk in enumerate(("ms_per_frame", "train_cpu_minutes")):
@@ -425,7 +455,7 @@ def chart_methods(res: dict, path: Path) -> None:
             ax = axes[i][j]
             ax.set_xlabel(xl)
             ax.set_ylabel("E_dist to reference (cm)")
-            ax.set_title(f"{g} ({res[g]['steps']} steps)")
+            ax.set_title(f"{g} ({res[g].get('steps')} steps)")
             ax.grid(alpha=0.3)
             ax.legend(fontsize=6)
     fig.suptitle("GAPS vs SNUG-like vs NCS-like on held-back motions and shapes")
@@ -504,6 +534,36 @@ def strip(args, ev_: Evaluator, res: dict, cache: Path, path: Path) -> None:
 # -------------------------------------------------------------------------------- main
 
 
+def merge_results(path: Path, new: dict, settings: dict) -> dict:
+    """Merge sections (methods / ablations per garment) into the JSON at ``path``, locked.
+
+    Several runs (one per garment, say) may write the same file; each keeps the others'.
+    """
+    import fcntl
+    import tempfile
+
+    from polygeo.runs import atomic_write_json
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(Path(tempfile.gettempdir()) / f"{path.name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        res = json.loads(path.read_text()) if path.is_file() else {}
+        for name, v in new.items():
+            if name == "sweep":
+                res[name] = v
+            elif name == "given":  # rows beside the methods' of each garment
+                for g, rows in v.items():
+                    res.setdefault("methods", {}).setdefault(g, {})["given"] = rows
+            else:
+                for g, val in v.items():
+                    keep = res.setdefault(name, {}).get(g, {}).get("given")
+                    res[name][g] = {**({"given": keep} if keep else {}), **val}
+        res.setdefault("runs", []).append(settings)
+        res["settings"] = settings
+        atomic_write_json(path, res)
+    return res
+
+
 def _sweep_arg(text: str) -> tuple:
     return tuple(tuple(int(v) for v in item.split("x")) for item in text.split(","))
 
@@ -520,12 +580,22 @@ def parse(argv=None) -> argparse.Namespace:
                     help="equal training steps of every compared model (default: the shipped "
                     "GAPS model's steps, used as shipped)")
     ap.add_argument("--no-shipped", action="store_true", help="never use the shipped weights")
+    ap.add_argument("--extra-model", action="append", default=[], metavar="PATH",
+                    help="also score this model file (methods section, its garment), marked as "
+                    "trained on another budget; repeatable")
     ap.add_argument("--sweep", type=_sweep_arg, default=None,
                     help="width x depth list, e.g. 32x1,64x2 (default: " +
                     ",".join(f"{w}x{d}" for w, d in SWEEP) + ")")
     ap.add_argument("--workers", type=int, default=1, help="processes for training/references")
     ap.add_argument("--cache", type=Path, default=None, help="models and references")
     ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--motions", nargs="+", default=None, choices=[m for m, _ in ev.MOTIONS],
+                    help="keep these held-back motions (default both)")
+    ap.add_argument("--shape-seeds", nargs="+", type=int, default=None, choices=ev.SHAPE_SEEDS,
+                    help="keep these held-back shapes (default both)")
+    ap.add_argument("--wait-models", action="store_true",
+                    help="do not train: solve the references, then wait for the models "
+                    "(trained by a concurrent --only-train run)")
     ap.add_argument("--only-train", action="store_true",
                     help="train the models the sections need, then stop (no references)")
     ap.add_argument("--quiet", action="store_true")
@@ -546,7 +616,7 @@ def main(argv=None) -> dict:
     args = parse(argv)
     env = environment()
     cache = ev.default_cache() if args.cache is None else args.cache
-    cases = ev.eval_cases(args.garments, args.frames, args.quick)
+    cases = ev.eval_cases(args.garments, args.frames, args.quick, args.motions, args.shape_seeds)
     c0, t0 = time.process_time(), time.perf_counter()
     need = prepare_all(args, cases, cache)
     if args.only_train:
@@ -554,17 +624,24 @@ def main(argv=None) -> dict:
     ev_ = Evaluator(cases, cache)
     args.out.mkdir(parents=True, exist_ok=True)
     jp = args.out / "bm_gaps.json"
-    res = json.loads(jp.read_text()) if jp.is_file() else {}
-    runs = {"methods": section_methods, "ablations": section_ablations, "sweep": section_sweep}
+    stamp = {"command": "python benchmarks/bm_gaps.py " + " ".join(
+        sys.argv[1:] if argv is None else argv),
+        "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    new = {}
+    runs = {"methods": section_methods, "ablations": section_ablations, "sweep": section_sweep,
+            "given": section_given}
     for name, fn in runs.items():
         if name in args.sections:
-            res[name] = {**fn(args, ev_, need, cache), "command": " ".join(sys.argv),
-                         "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
-    res["settings"] = {
-        "command": "python benchmarks/bm_gaps.py " + " ".join(sys.argv[1:] if argv is None
-                                                                else argv),
-        "quick": args.quick, "frames": args.frames, "garments": args.garments,
-        "cases": [dataclasses.asdict(c) for c in cases if c.garment == args.garments[0]],
+            r = fn(args, ev_, need, cache)
+            if name == "sweep":
+                new[name] = {**r, **stamp}
+            elif name == "given":
+                new[name] = {g: [{**x, **stamp} for x in v] for g, v in r.items()}
+            else:
+                new[name] = {g: {**v, **stamp} for g, v in r.items()}
+    settings = {
+        **stamp, "quick": args.quick, "frames": args.frames, "garments": args.garments,
+        "cases": sorted({f"{c.motion}{c.seed}/shape{c.shape_seed} {c.shape}" for c in cases}),
         "steps": args.steps, "equal_budget": True,
         "budget_note": ("every compared model trained for the same number of steps"
                         + ("" if args.steps is None else f" ({args.steps}, smaller than the "
@@ -573,9 +650,7 @@ def main(argv=None) -> dict:
         "cpu_minutes_this_run": (time.process_time() - c0) / 60.0,
         "wall_minutes_this_run": (time.perf_counter() - t0) / 60.0,
         **finish(env)}
-    from polygeo.runs import atomic_write_json
-
-    atomic_write_json(jp, res)
+    res = merge_results(jp, new, settings)
     if "charts" in args.sections:
         if "methods" in res:
             chart_methods(res["methods"], args.out / "bm_gaps.png")

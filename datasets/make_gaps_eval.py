@@ -74,14 +74,22 @@ def shape_of(seed: int) -> tuple:
     return tuple(float(v) for v in random_shapes(1, seed)[0])
 
 
-def eval_cases(garments=GARMENTS, frames: int = 30, quick: bool = False) -> list[EvalCase]:
-    """The cases: per garment 2 motions x 2 shapes (quick: the turn on the first shape)."""
-    motions = MOTIONS[:1] if quick else MOTIONS
-    seeds = SHAPE_SEEDS[:1] if quick else SHAPE_SEEDS
+def eval_cases(garments=GARMENTS, frames: int = 30, quick: bool = False, motions=None,
+               shape_seeds=None) -> list[EvalCase]:
+    """The cases: per garment 2 motions x 2 shapes (quick: the turn on the first shape).
+
+    ``motions`` (names in :data:`MOTIONS`) and ``shape_seeds`` (in :data:`SHAPE_SEEDS`) keep
+    a subset of them.
+    """
+    ms = [m for m in (MOTIONS[:1] if quick else MOTIONS) if motions is None or m[0] in motions]
+    seeds = [k for k in (SHAPE_SEEDS[:1] if quick else SHAPE_SEEDS)
+             if shape_seeds is None or k in shape_seeds]
+    if not ms or not seeds:
+        raise ValueError(f"motions, shape_seeds: no case left of {MOTIONS} x {SHAPE_SEEDS}")
     if not 1 <= frames <= MOTION_FRAMES:
         raise ValueError(f"frames: expected 1..{MOTION_FRAMES}, got {frames}")
     return [EvalCase(g, m, s, k, shape_of(k), frames)
-            for g in garments for m, s in motions for k in seeds]
+            for g in garments for m, s in ms for k in seeds]
 
 
 def motion_file(cache: Path, motion: str, seed: int, body=None) -> Path:
