@@ -569,6 +569,9 @@ def main(argv=None) -> int:
     ap.add_argument("--no-robustness", action="store_true", help="skip the robustness table")
     ap.add_argument("--sections", default="speed,accuracy,parsimony,robustness",
                     help="comma-separated parts to run (default: all)")
+    ap.add_argument("--sizes", default=None,
+                    help="comma-separated vertex counts of the accuracy grid (default: 10000,"
+                         "100000; --quick: 10000)")
     args = ap.parse_args(argv)
     start_forkserver()
     isolated(np.zeros, 1)  # launch the server now, while this process is still thread-free
@@ -586,11 +589,13 @@ def main(argv=None) -> int:
         par_noises = (0.001,)
     else:
         surfaces = ["torus", "cylinder", "sphere", "monge"]
-        noises, sizes = [0.0, 0.001, 0.01], [10_000, 100_000]
-        orders, ks = [1, 2, 3, 4], [20, 50, 100]
+        noises, sizes = [0.0, 0.0001, 0.001, 0.01], [10_000, 100_000]
+        orders, ks = [1, 2, 3, 4], [20, 50, 100, 200, 400]
         ref_size = 100_000
         park = [20, 50, 100, 200, 400]
         par_noises = (0.001, 0.01)
+    if args.sizes:
+        sizes = [int(x) for x in args.sizes.split(",")]
     peers = {} if args.no_peers else available_peers()
     record = {
         "benchmark": "jets",
@@ -640,6 +645,8 @@ def main(argv=None) -> int:
         _speed_section(record, ref_size, peers)
     if "accuracy" in sections:
         _accuracy_section(record, surfaces, noises, sizes, orders, ks, peers, tqdm)
+        record["auto_vs_best"] = auto_vs_best(record["accuracy"])
+        _print_auto_vs_best(record["auto_vs_best"])
     if "parsimony" in sections:
         _parsimony_section(record, ref_size, park, tqdm, par_noises)
     if "robustness" in sections:
@@ -780,6 +787,20 @@ def _accuracy_section(record, surfaces, noises, sizes, orders, ks, peers, tqdm):
                     entry["border"] = metrics(data, r.normals, r.mean_curvature, None,
                                               sel=border, h_sign=sgn)
                 record["accuracy"].append(entry)
+        # the automatic setting: one call, no hint about the noise
+        r, dt = run_polygeo(P, F, "auto", "auto")
+        sgn = np.sign(np.einsum("ij,ij->i", r.normals, data.normals))
+        entry = dict(method="polygeo_auto", surface=surf, noise=noise, n=n, k="auto",
+                     order="auto", pts_per_s=n / dt, pts_per_cpu_s=n / run_polygeo.last_cpu,
+                     flagged=int((r.status != 0).sum()),
+                     median_neighbours=float(np.median(r.n_neighbors)),
+                     order_histogram=np.bincount(r.order, minlength=5).tolist(),
+                     **metrics(data, r.normals, r.mean_curvature, r.gaussian_curvature,
+                               h_sign=sgn))
+        if border is not None:
+            entry["border"] = metrics(data, r.normals, r.mean_curvature, None, sel=border,
+                                      h_sign=sgn)
+        record["accuracy"].append(entry)
         # the interpolation variant, and libigl's own neighbourhoods (mesh 2-rings), at order 2
         variants = [("polygeo_interpolate", dict(k=20, interpolate=True)),
                     ("polygeo_2ring", dict(k=20, rings=2, faces=F)),
@@ -863,6 +884,54 @@ def _parsimony_section(record, ref_size, park, tqdm, noises=(0.001, 0.01)):
                            "runs": runs}
 
 
+#: Errors below these count as equal (resolution of the metrics in float64: arccos of a
+#: cosine within 1e-16 of 1 is 1e-6 deg; H relative to 1e-9 is the fits' rounding level).
+RESOLUTION = {"normal_median_deg": 1e-5, "H_rel_median": 1e-8}
+
+
+def auto_vs_best(accuracy):
+    """Per dataset: the automatic setting's errors over the best of every other method.
+
+    Every fixed polygeo setting, variant, the NumPy baseline and every peer of the same
+    dataset compete; errors are floored at :data:`RESOLUTION`.
+    """
+    out = []
+    keys = sorted({(a["surface"], a["noise"], a["n"]) for a in accuracy})
+    for surf, noise, n in keys:
+        rows = [a for a in accuracy if (a["surface"], a["noise"], a["n"]) == (surf, noise, n)
+                and "pts_per_s" in a]
+        auto = [a for a in rows if a["method"] == "polygeo_auto"]
+        if not auto:
+            continue
+        auto = auto[0]
+        row = dict(surface=surf, noise=noise, n=n, auto_pts_per_s=auto["pts_per_s"])
+        for key in RESOLUTION:
+            cands = [a for a in rows if a is not auto and a.get(key) is not None]
+            if not cands or auto.get(key) is None:
+                continue
+            best = min(cands, key=lambda a: a[key])
+            floor = RESOLUTION[key]
+            name = best["method"] + (f" k{best['k']} o{best['order']}"
+                                     if best["method"] == "polygeo" else "")
+            row[key] = dict(auto=auto[key], best=best[key], best_method=name,
+                            best_pts_per_s=best["pts_per_s"],
+                            ratio=max(auto[key], floor) / max(best[key], floor))
+        out.append(row)
+    return out
+
+
+def _print_auto_vs_best(rows):
+    print("automatic setting (k='auto', order='auto') against the best of all others:")
+    for r in rows:
+        parts = []
+        for key, short in (("normal_median_deg", "normal"), ("H_rel_median", "H")):
+            v = r.get(key)
+            if v:
+                parts.append(f"{short} {v['auto']:.3g}/{v['best']:.3g} = {v['ratio']:.2f}x "
+                             f"({v['best_method']})")
+        print(f"  {r['surface']:<9}{100 * r['noise']:>6g}% n={r['n']:<7}" + "; ".join(parts))
+
+
 def _json_default(o):
     if isinstance(o, (np.integer,)):
         return int(o)
@@ -937,6 +1006,8 @@ def chart(record, png):
         m = a["method"]
         if m == "polygeo":
             return f"polygeo order {a['order']}"
+        if m == "polygeo_auto":
+            return "polygeo k=auto, order=auto"
         if m == "cgal_jet_normals":
             return f"CGAL jet degree {a['order']}"
         return m
@@ -952,7 +1023,10 @@ def chart(record, png):
                     continue
                 lab = label(a)
                 col, mk = _style(lab)
-                h = ax.scatter(a["pts_per_s"], y, color=col, marker=mk, s=46, alpha=0.85)
+                star = a["method"] == "polygeo_auto"
+                h = ax.scatter(a["pts_per_s"], y, color="k" if star else col,
+                               marker="*" if star else mk, s=200 if star else 46,
+                               alpha=0.85, zorder=3 if star else 2)
                 handles.setdefault(lab, h)
                 if a["method"] == "polygeo":
                     ax.annotate(f"k{a['k']}", (a["pts_per_s"], y), fontsize=6,

@@ -8,7 +8,10 @@ in one parallel loop whose work arrays stay in cache:
 * :func:`frames_fit_quantities` — the stages frames -> fit -> quantities of the common case
   (one neighbourhood size per point, one order), results straight into the output arrays;
 * :func:`auto_k_counts` — ``k="auto"``: per point, the neighbourhood size chosen by the
-  intersection of confidence intervals over nested neighbourhoods of one sorted k-NN list.
+  intersection of confidence intervals over nested neighbourhoods of one sorted k-NN list;
+* :func:`auto_statistics` — ``order="auto"`` / ``k="auto"``: per point, jets of every
+  candidate order on every candidate nested neighbourhood (slopes, H, their variances),
+  the statistics :mod:`polygeo._estimate_auto` chooses from.
 
 Their arguments come grouped in three small records (named tuples of arrays and scalars):
 :class:`Hoods` (the neighbourhoods of a chunk of query points), :class:`JetSettings` (what
@@ -38,6 +41,7 @@ __all__ = [
     "PARALLEL_MIN",
     "frames_fit_quantities",
     "auto_k_counts",
+    "auto_statistics",
 ]
 
 #: Neighbourhoods of a chunk of ``Q`` query points. ``points (N, 3)`` float64; ``source (Q,)``
@@ -350,3 +354,158 @@ def auto_k_counts(hood: Hoods, jet: JetSettings, *, sizes: np.ndarray, kframe: i
            order=jet.order, max_cond=jet.max_cond, interpolate=jet.interpolate, ep=jet.ep,
            eq=jet.eq, sizes=sizes, kframe=kframe, gamma=gamma, min_dof=min_dof, counts=counts)
     return counts
+
+
+# ----------------------------------------------------------------------------- auto order + k
+
+
+@nb.njit(cache=True, inline="always")
+def _nested_fits(uv, z, valid, sizes, n_orders, orders, max_conds, interpolate, ep, eq, ws, i,
+                 val, gvar, rss, dof, ok, coef):
+    """Fits of every order over the nested neighbourhoods (first ``sizes[s]`` rows) of item 0.
+
+    One pass of moments (up to degree ``2 max(orders)``) along the sorted rows serves every
+    order: per size and order one small solve. Writes, for query ``i``, order ``j`` and size
+    ``s``: ``val[i, j, s] = (a10, a01, H)`` (``H`` to first order ``(a20 + a02) / w``),
+    ``gvar[i, j, s]`` their variances over ``sigma^2``, ``rss`` and ``dof`` of the fit, and
+    ``ok`` (enough points and a condition number within ``max_conds[j]``).
+    """
+    mom, rhs, pu, pv, N, L, Linv, D, Ld, x, g, y, col = ws
+    K = uv.shape[1]
+    S = sizes.shape[0]
+    omax = orders[n_orders - 1]
+    n2 = 2 * omax
+    MM = ep.shape[0]
+    hmax = 0.0
+    for j in range(K):
+        if valid[0, j]:
+            hmax = max(hmax, uv[0, j, 0] ** 2 + uv[0, j, 1] ** 2)
+    h = math.sqrt(hmax) if hmax > 0.0 else 1.0
+    ih = 1.0 / h
+    for p in range(n2 + 1):
+        for q in range(n2 + 1):
+            mom[p, q] = 0.0
+    for j in range(MM):
+        rhs[j] = 0.0
+    zz = 0.0
+    cnt = 0
+    si = 0
+    for j in range(K):
+        if valid[0, j]:
+            accumulate_sample(uv[0, j, 0] * ih, uv[0, j, 1] * ih, 1.0, z[0, j], mom, rhs,
+                              pu, pv, n2, MM, ep, eq)
+            zz += z[0, j] ** 2
+            cnt += 1
+        while si < S and (j + 1 >= sizes[si] or j == K - 1):
+            for oi in range(n_orders):
+                M = (orders[oi] + 1) * (orders[oi] + 2) // 2
+                ok[i, oi, si] = False
+                if cnt < M + (1 if interpolate else 0):
+                    continue
+                cc = factor_normal(mom, ep, eq, M, N, D, L, Ld, Linv)
+                if not cc <= max_conds[oi]:
+                    continue
+                for m in range(M):
+                    g[m] = D[m] * rhs[m]
+                solve_factored(L, Ld, M, g, y)
+                for m in range(M):
+                    x[m] = D[m] * y[m]
+                if interpolate:
+                    _g_column(L, Ld, D, M, 0, g, y, col)
+                    f = x[0] / col[0]
+                    for m in range(M):
+                        x[m] -= col[m] * f
+                    x[0] = 0.0
+                xsx = 0.0
+                xr = 0.0
+                for m in range(M):
+                    xr += x[m] * rhs[m]
+                    for m2 in range(M):
+                        xsx += x[m] * x[m2] * mom[ep[m] + ep[m2], eq[m] + eq[m2]]
+                rss[i, oi, si] = max(zz - 2.0 * xr + xsx, 0.0)
+                dof[i, oi, si] = cnt - M + (1 if interpolate else 0)
+                _g_column(L, Ld, D, M, 1, g, y, col)
+                gvar[i, oi, si, 0] = max(col[1], 0.0) * ih * ih
+                _g_column(L, Ld, D, M, 2, g, y, col)
+                gvar[i, oi, si, 1] = max(col[2], 0.0) * ih * ih
+                sc = 1.0
+                dg = 0
+                for m in range(M):
+                    while dg < ep[m] + eq[m]:
+                        sc *= ih
+                        dg += 1
+                    coef[i, oi, si, m] = x[m] * sc
+                val[i, oi, si, 0] = x[1] * ih
+                val[i, oi, si, 1] = x[2] * ih
+                val[i, oi, si, 2] = 0.0
+                gvar[i, oi, si, 2] = 0.0
+                if M >= 6:
+                    _g_column(L, Ld, D, M, 3, g, y, col)
+                    g33 = col[3]
+                    g35 = col[5]
+                    _g_column(L, Ld, D, M, 5, g, y, col)
+                    gvar[i, oi, si, 2] = max(g33 + col[5] + 2.0 * g35, 0.0) * ih ** 4
+                    w_ = math.sqrt(1.0 + (x[1] * ih) ** 2 + (x[2] * ih) ** 2)
+                    val[i, oi, si, 2] = (x[3] + x[5]) * ih * ih / w_
+                ok[i, oi, si] = True
+            si += 1
+
+
+def _auto_statistics_py(points, source, nbr, dist, orders, max_conds, interpolate, ep, eq,
+                        sizes, kframe, val, gvar, rss, dof, ok, coef):
+    """Per query ``i``: :func:`_nested_fits` of every order and size in one PCA frame.
+
+    The frame is that of the first ``kframe`` rows; ``ep, eq`` are the exponents of the
+    largest order (the lower orders' are their prefixes).
+    """
+    Q, K = nbr.shape
+    MM = ep.shape[0]
+    O = orders.shape[0]
+    n2 = 2 * orders[O - 1]
+    nchunks = (Q + _CHUNK - 1) // _CHUNK
+    for c in nb.prange(nchunks):
+        uv = np.empty((1, K, 2))
+        z = np.empty((1, K))
+        valid = np.empty((1, K), dtype=np.bool_)
+        Rl = np.empty((1, 3, 3))
+        lam = np.empty((1, 3))
+        a = np.empty((3, 3))
+        v = np.empty((3, 3))
+        ws = (np.empty((n2 + 1, n2 + 1)), np.empty(MM), np.empty(n2 + 1), np.empty(n2 + 1),
+              np.empty((MM, MM)), np.empty((MM, MM)), np.empty((MM, MM)), np.empty(MM),
+              np.empty(MM), np.empty(MM), np.empty(MM), np.empty(MM), np.empty(MM))
+        for i in range(c * _CHUNK, min(Q, (c + 1) * _CHUNK)):
+            height_frame(points, source[i], nbr[i], dist[i], K, uv, z, valid, 0, Rl, 0, lam, a,
+                         v, kframe)
+            _nested_fits(uv, z, valid, sizes, O, orders, max_conds, interpolate, ep, eq, ws, i,
+                         val, gvar, rss, dof, ok, coef)
+
+
+auto_statistics_par, auto_statistics_ser = njit_pair(_auto_statistics_py)
+
+
+def auto_statistics(hood: Hoods, *, orders: np.ndarray, max_conds: np.ndarray,
+                    interpolate: bool, sizes: np.ndarray, kframe: int) -> dict:
+    """Nested fits of every order and size per query (``order="auto"`` / ``k="auto"``).
+
+    Returns ``val, gvar (Q, O, S, 3)`` (slopes ``a10, a01`` and ``H`` in the query's PCA frame,
+    and their variances over the noise variance), ``rss (Q, O, S)``, ``dof (Q, O, S)`` int64
+    and ``ok (Q, O, S)`` bool (the fit is well posed).
+    """
+    from ._jets_common import exponents_np
+
+    Q = hood.nbr.shape[0]
+    O, S = orders.shape[0], sizes.shape[0]
+    e = exponents_np(int(orders[-1]))
+    out = dict(val=np.zeros((Q, O, S, 3)), gvar=np.zeros((Q, O, S, 3)), rss=np.zeros((Q, O, S)),
+               dof=np.zeros((Q, O, S), dtype=np.int64), ok=np.zeros((Q, O, S), dtype=np.bool_),
+               coef=np.zeros((Q, O, S, e.shape[0])))
+    par = Q >= PARALLEL_MIN // 8
+    kernel = auto_statistics_par if par else auto_statistics_ser
+    kernel(points=hood.points, source=hood.source, nbr=hood.nbr, dist=hood.dist,
+           orders=np.ascontiguousarray(orders, dtype=np.int64),
+           max_conds=np.ascontiguousarray(max_conds, dtype=np.float64),
+           interpolate=bool(interpolate), ep=np.ascontiguousarray(e[:, 0]),
+           eq=np.ascontiguousarray(e[:, 1]), sizes=np.ascontiguousarray(sizes, dtype=np.int64),
+           kframe=int(kframe), **out)
+    return out

@@ -38,7 +38,7 @@ from .neighbors import PointIndex, mesh_k_ring
 from .status import Status
 
 #: Neighbour counts tried by ``k="auto"`` (besides the point itself; capped by the data).
-AUTO_K_CANDIDATES = (12, 24, 48, 96, 192, 384)
+AUTO_K_CANDIDATES = (12, 16, 20, 24, 32, 48, 64, 96, 128, 192, 256, 384)
 #: Width (in standard deviations) of the confidence intervals of ``k="auto"``.
 AUTO_K_GAMMA = 2.5
 #: Neighbours whose automatic sizes are pooled (median) per point by ``k="auto"``.

@@ -47,6 +47,7 @@ import torch
 
 from . import jets
 from ._diffgeo_numba import jet_geometry
+from ._estimate_auto import fit_auto
 from ._estimate_output import extras, non_manifold_status, oriented_outputs
 from ._estimate_stages import (
     AUTO_K_CANDIDATES,
@@ -245,22 +246,17 @@ def differential_quantities(
         ``k + 1`` points: the convention of CGAL's ``jet_estimate_normals`` (same k, same
         points, same result). Clipped to the number of finite points. Must be at least
         ``n_coeffs(order) - 1`` (5 for order 2).
-        ``"auto"``: per point, the largest of ``k_candidates`` whose estimates still agree
-        with those of all smaller neighbourhoods within their noise-driven confidence
-        intervals (intersection of confidence intervals, ICI: a bias-variance rule). With one
-        order and uniform weights this runs compiled on one k-NN list: one frame per point
-        (PCA of the candidate nearest ``4 M`` points), moments accumulated along the sorted
-        neighbours so that each candidate costs one small solve; intervals ``value +-
-        AUTO_K_GAMMA * sd`` on the slopes ``a10, a01`` and on ``H``, with ``sd = sigma
-        sqrt(G_ii)`` (``G`` the inverse moment matrix; ``sigma^2`` at each step the mean of
-        ``RSS / (n - M)`` over the candidates so far with at least ``3 M`` degrees of freedom);
-        the per-point choices are then pooled (geometric median over the ``AUTO_K_SMOOTH``
-        nearest neighbours) and each point is refitted at the pooled size in its own PCA
-        frame. With ``order="auto"`` the sizes are chosen at the lowest order, then the order
-        test runs at those sizes. Measured (torus, 20k vertices, order 2; median normal error
-        / median relative error of H): clean 0.039 deg / 0.0068 (k = 20: 0.042 deg / 0.008),
-        0.1 % noise 0.73 deg / 0.096 (best fixed k: 0.66 deg at k = 200, 0.064 at k = 100),
-        1 % noise 5.7 deg / 0.40 (best fixed: 5.4 deg / 0.18 at k = 400).
+        ``"auto"`` (alone or with ``order="auto"``, on a k-NN list without weights): per
+        point, the order of ``auto_orders`` and the size of ``k_candidates`` with the least
+        estimated mean squared error of the normal and of H (:mod:`polygeo._estimate_auto`):
+        per order, the largest size whose slopes and H agree with those of all smaller sizes
+        within ``AUTO_K_GAMMA`` standard deviations (ICI); each lower order's bias from its
+        difference with the highest order at that size; every statistic pooled (median) over
+        the ``AUTO_K_SMOOTH`` nearest neighbours, so that the choice does not depend on the
+        chunk a point is processed in. The point is then fitted exactly as the fixed
+        ``(k, order)`` chosen. Clean data get a 4-jet on small neighbourhoods, noisy data
+        wider ones and lower orders (figures: README, Performance). With weights, a radius or
+        rings the older per-point ICI on sizes and F-test on orders apply.
     radius : float, optional
         Use all neighbours within this distance (L) instead of k nearest (``k`` then caps
         the count at ``k + 1`` points, nearest kept, unless ``k="auto"``).
@@ -269,8 +265,9 @@ def differential_quantities(
     order : int or "auto"
         Jet order 1..4 (1: plane, zero curvature; 2: osculating quadric; 3, 4: cubic and
         quartic terms, more accurate on clean data, more sensitive to noise). ``"auto"``: per
-        point, the lowest of ``auto_orders`` that no higher one improves significantly (F-test
-        on the residuals at level ``alpha``).
+        point, the order of ``auto_orders`` with the least estimated error (see ``k``; order 1
+        only when it is the only candidate); with weights, a radius or rings, the lowest
+        order no higher one improves significantly (F-test on the residuals at ``alpha``).
     weights : {None, "gaussian"}
         Uniform least squares (CGAL) or Gaussian weights ``exp(-d^2 / rms^2)`` of the
         distance to the point.
@@ -341,7 +338,9 @@ def differential_quantities(
     # frames -> fit -> quantities, chunk by chunk: compiled (fused where it can) or torch
     out = empty_quantities(P.shape[0], s.n_coeffs)
     parts = [] if s.use_torch else None  # the torch path's differentiable results
-    for q in hoods.chunks(s.batch_size, s.progress):
+    if _auto_compiled(s):  # automatic order / size on one k-NN list: two passes
+        fit_auto(hoods, out, settings=s)
+    for q in ([] if _auto_compiled(s) else hoods.chunks(s.batch_size, s.progress)):
         nbr, dist = hoods.query(q)
         if s.use_torch:
             parts.append(fit_torch(pts_t, hoods, q, nbr, dist, out, settings=s))
@@ -359,6 +358,13 @@ def differential_quantities(
             non_manifold_status(P, faces_np, out, radius=s.radius, rings=s.rings))
     result = DifferentialQuantities(points=pts_t, **dq)
     return _to_numpy(result, points) if numpy_in else result
+
+
+def _auto_compiled(s: Settings) -> bool:
+    """Whether the automatic order/size rule of :mod:`polygeo._estimate_auto` applies."""
+    auto = s.k == "auto" or (s.order == "auto" and len(s.auto_orders) > 1)
+    return (auto and not s.use_torch and s.weights is None and s.radius is None
+            and s.rings is None)
 
 
 def _as_points(points: Any) -> tuple[torch.Tensor, bool]:
