@@ -68,6 +68,7 @@ __all__ = [
     "jets_dask",
     "tile_task",
     "dask_client",
+    "up_reference",
 ]
 
 #: Output fields: name -> (columns or None, dtype).
@@ -139,6 +140,35 @@ def _validate(settings: TileSettings) -> None:
     if settings.radius is not None:
         check_positive(settings.radius, "radius")
     check_choice(settings.orient, "orient", ("up", "none"))
+
+
+#: Tilt of the ``orient="up"`` reference: ``+z`` decides, and a normal exactly horizontal
+#: (``n_z == 0``, e.g. a wall of a synthetic or CAD-derived cloud) is decided by ``+x`` and
+#: then ``+y`` instead of by propagation over whichever points one call holds, so that a tiled
+#: run and an in-memory run orient it the same way. Irrational ratio: no axis-aligned normal is
+#: orthogonal to the tilted reference.
+_UP_TILT = (1e-9, 1e-9 * math.sqrt(2.0))
+
+
+def up_reference(points: Any) -> np.ndarray:
+    """Per-point reference direction of ``orient="up"`` (``+z``, ties to ``+x``, then ``+y``).
+
+    Parameters
+    ----------
+    points : (N, 3) array_like
+        The cloud (only its length and dtype are used).
+
+    Returns
+    -------
+    (N, 3) float64 ndarray
+        ``(1e-9, 1e-9 * sqrt(2), 1)`` on every row: a normal is flipped towards ``+z``; one with
+        ``|n_z|`` below ~1e-9 is flipped towards ``+x`` (then ``+y``), the same whatever other
+        points the call holds. Used by tiled runs and by ``polygeo jets --orient up``.
+    """
+    n = len(points)
+    ref = np.empty((n, 3), dtype=np.float64)
+    ref[:, 0], ref[:, 1], ref[:, 2] = _UP_TILT[0], _UP_TILT[1], 1.0
+    return ref
 
 
 def parse_memory(value: Any) -> int:
@@ -293,10 +323,7 @@ def tile_task(points: Any, plan: TilePlan, t: int, settings: TileSettings,
         for name, (cols, typ) in FIELDS.items():
             out[name] = np.zeros((0, cols) if cols else (0,), dtype=typ)
         return out
-    ref = None
-    if settings.orient == "up":
-        ref = np.zeros_like(xyz)
-        ref[:, 2] = 1.0
+    ref = up_reference(xyz) if settings.orient == "up" else None
     dq = differential_quantities(
         xyz, normals=ref, orient="input" if ref is not None else "none", progress=False,
         **settings.estimator_kwargs(),

@@ -116,8 +116,9 @@ def _one(args, inp: Path, out: Path, client=None) -> str:
                       interpolate=bool(args.interpolate))
         ref, orient = data.normals, ("auto" if args.orient == "up" else args.orient)
         if st is not None and st.orient == "up":
-            ref = np.zeros_like(data.points)
-            ref[:, 2] = 1.0
+            from polygeo.tiling import up_reference
+
+            ref = up_reference(data.points)
             orient = "input"
         dq = differential_quantities(data.points, faces=data.faces, normals=ref,
                                      orient=orient, rings=args.rings,
