@@ -49,7 +49,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                        type=type(f.default), default=f.default,
                        help=f"default {f.default!r}")
     p.add_argument("--max-minutes", type=float, default=None,
-                   help="stop (checkpointed) after this many minutes; run again to resume")
+                   help="stop (checkpointed) after this many wall-clock minutes; run again to "
+                   "resume (default: no limit, run all steps)")
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_train)
@@ -105,21 +106,35 @@ def register_simulate(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--res", type=_res, default=(64, 64), help="N or HxW grid (default 64)")
     p.add_argument("--size", type=float, default=1.0, help="sheet width, m (default 1)")
-    p.add_argument("--handles", choices=sorted(LAYOUTS), default="corners")
-    p.add_argument("--motion", choices=list(MOTIONS), default="xy")
-    p.add_argument("--speed", type=float, default=1.0, help="factor on the base speed")
-    p.add_argument("--frames", type=int, default=120, help="frames at 60 fps")
-    p.add_argument("--optimizer", choices=list(OPTIMIZERS), default="fnopt")
-    p.add_argument("--iters", type=int, default=10, help="inner iterations per frame")
-    p.add_argument("--lr", type=float, default=None, help="gd/adam step size, lbfgs step")
-    p.add_argument("--stretch", type=float, default=300.0, help="N/m (100..1000)")
-    p.add_argument("--shear", type=float, default=10.0, help="N/m (1..100)")
-    p.add_argument("--bend", type=float, default=1.0, help="mJ (0.01..10)")
+    p.add_argument("--handles", choices=sorted(LAYOUTS), default="corners",
+                   help="handle layout: grid vertices whose trajectories are prescribed "
+                   "(default corners: the two corners of the first grid row)")
+    p.add_argument("--motion", choices=list(MOTIONS), default="xy",
+                   help="handle trajectory: translation along x, y, z, xy, xyz or a rotation "
+                   "(rot-a, rot-b and their reverses), 60 fps (default xy)")
+    p.add_argument("--speed", type=float, default=1.0,
+                   help="factor on the trajectory's base speed (default 1.0)")
+    p.add_argument("--frames", type=int, default=120, help="frames at 60 fps (default 120)")
+    p.add_argument("--optimizer", choices=list(OPTIMIZERS), default="fnopt",
+                   help="inner optimiser of each backward-Euler step; reference: solved to "
+                   "convergence (default fnopt: the shipped learned optimiser)")
+    p.add_argument("--iters", type=int, default=10,
+                   help="inner iterations per frame (default 10)")
+    p.add_argument("--lr", type=float, default=None,
+                   help="gd/adam step size, lbfgs step scale (default gd 2e-3, adam 0.1, "
+                   "lbfgs 1.0)")
+    p.add_argument("--stretch", type=float, default=300.0,
+                   help="stretch stiffness, N/m (authors' range 100..1000; default 300)")
+    p.add_argument("--shear", type=float, default=10.0,
+                   help="shear stiffness, N/m (range 1..100; default 10)")
+    p.add_argument("--bend", type=float, default=1.0,
+                   help="bending stiffness, mJ (range 0.01..10; default 1)")
     p.add_argument("--repulsion", type=float, default=0.0,
-                   help="weight (J) of the repulsion term, eq. (28); 0: off")
+                   help="weight (J) of the repulsion term, eq. (28); 0: off (default 0)")
     p.add_argument("--no-reference", action="store_true",
                    help="skip the converged reference (no e_CD / e_3D)")
-    p.add_argument("--gif-every", type=int, default=2, help="GIF frame stride")
+    p.add_argument("--gif-every", type=int, default=2,
+                   help="GIF frame stride (default 2)")
     p.add_argument("-o", "--out", required=True, help="output folder")
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
