@@ -78,6 +78,13 @@ PARSIMONY = 0.10
 # ------------------------------------------------------------------------------ models
 
 
+
+def _portable(path) -> str:
+    """A path for the record: the home directory written as ``~`` (no machine paths)."""
+    p = str(path)
+    home = str(Path.home())
+    return "~" + p[len(home):] if p.startswith(home + "/") else p
+
 def train_settings(garment: str, method: str = "gaps", inext: str = "auto",
                    width: int | None = None, depth: int | None = None):
     """The :class:`draping.gaps.TrainSettings` of a compared model (defaults elsewhere)."""
@@ -279,7 +286,7 @@ def model_record(path: Path, ev_: Evaluator, label: str) -> dict:
             "gru_params": int(n_gru), "steps": tr.get("steps"),
             "train_cpu_minutes": tr.get("cpu_minutes"),
             "train_wall_minutes": tr.get("wall_minutes"),
-            "model": str(path), **ev_.score(m)}
+            "model": _portable(path), **ev_.score(m)}
 
 
 # ---------------------------------------------------------------------------- sections
@@ -625,7 +632,7 @@ def main(argv=None) -> dict:
     args.out.mkdir(parents=True, exist_ok=True)
     jp = args.out / "bm_gaps.json"
     stamp = {"command": "python benchmarks/bm_gaps.py " + " ".join(
-        sys.argv[1:] if argv is None else argv),
+        _portable(a) for a in (sys.argv[1:] if argv is None else argv)),
         "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     new = {}
     runs = {"methods": section_methods, "ablations": section_ablations, "sweep": section_sweep,

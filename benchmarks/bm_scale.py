@@ -196,7 +196,7 @@ def run_one(mode: str, laz: Path, work: Path, k: int, keep: bool = False) -> dic
         rec["tiles"] = res.n_tiles
         rec["resumed_tiles"] = res.n_resumed
         rec["ok_fraction"] = float((np.asarray(res["status"]) == 0).mean())
-        rec["folder"] = str(folder)
+        rec["folder"] = folder.name  # relative to --work: no machine path in the record
     elif mode == "open3d":
         import laspy
         import open3d as o3d
@@ -259,7 +259,7 @@ def check_equal(laz: Path, work: Path, folder: Path, k: int, tiles: int = 0,
     partial = (folder / "tile_k1.npy").exists()  # a run not finished: results in tile order
     res = {f: np.load(folder / f"{'tile_' if partial else ''}{f}.npy", mmap_mode="r")
            for f in names}
-    out: dict = {"folder": str(folder)}
+    out: dict = {"folder": folder.name}
     if tiles == 0:
         ref = np.load(work / f"memory_{n}.npz")
         rows = [np.arange(n)]
