@@ -49,35 +49,40 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--garment-file", default=None, metavar="FILE",
                    help="garment mesh (OBJ/PLY/OFF/STL) in the rest pose of the default body, "
                    "metres; checked (manifold, consistent winding, no degenerate triangles, "
-                   "outside the body); replaces --garment")
+                   "outside the body); replaces --garment (default: none, use --garment)")
     p.add_argument("--motion", default="walk", metavar="NAME",
                    help=f"procedural motion, one of {', '.join(_MOTIONS)} (random: a seeded "
                    "random smooth motion); 30 frames per second (default walk)")
     p.add_argument("--motion-file", default=None, metavar="FILE",
                    help="motion .npz with 'rotations' (T, 104, 3) axis-angle per Anny bone in "
-                   "radians, 'translation' (T, 3) in metres and optional 'fps'; replaces "
-                   "--motion")
+                   "radians, 'translation' (T, 3) in metres and optional 'fps' (frames per "
+                   "second, default 30); replaces --motion (default: none, use --motion)")
     p.add_argument("--frames", type=int, default=30, metavar="T",
                    help="number of frames to drape, >= 1 (default 30, i.e. 1 s at 30 fps)")
     p.add_argument("--shape", default="", metavar="NAME=V,...",
                    help=f"body phenotypes, values in [0, 1], names among {', '.join(_PHENOTYPES)}"
                    " (others 0.5, the default adult), e.g. \"age=0.66,gender=0.2\"")
     p.add_argument("--seed", type=int, default=0,
-                   help="seed of the random motion and of generated garments (default 0)")
+                   help="integer seed of the random motion and of generated garments "
+                   "(with --res; default 0)")
     p.add_argument("--res", type=int, default=None, metavar="N",
                    help="garment vertex count, 1000..100000 (default: the shipped 5000-vertex "
                    "template; another count generates one, ~10-20 s)")
     p.add_argument("--static", action="store_true",
-                   help="static drape of every frame's pose (no dynamics) instead of a sequence")
+                   help="static drape of every frame's pose (no dynamics) instead of a "
+                   "dynamic sequence (default off: frame 0 static, later frames backward Euler)")
     p.add_argument("--tol", type=float, default=None,
                    help="solver tolerance: residual force / garment weight, dimensionless "
                    "(default 1e-2)")
-    p.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
+    p.add_argument("-o", "--out", required=True, metavar="OUT",
+                   help="output folder, created if missing (required; no default)")
     p.add_argument("--no-resume", action="store_true",
-                   help="start afresh, ignoring a checkpoint in OUT")
+                   help="start afresh, ignoring a checkpoint in OUT (default off: resume "
+                   "from OUT/checkpoint.pt when its settings match)")
     p.add_argument("--no-pictures", action="store_true",
-                   help="skip the PNG strip and the GIF")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+                   help="skip the PNG strip and the GIF (default off: both are written)")
+    p.add_argument("--quiet", action="store_true",
+                   help="no progress bar (default off: a tqdm bar over frames)")
     p.set_defaults(func=run)
 
 

@@ -32,6 +32,19 @@ def test_help_lists_every_option_with_units():
         assert name in text, name
 
 
+def test_help_states_every_default():
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command")
+    for action in sub.choices["drape-reference"]._actions:
+        if action.dest == "help":
+            continue
+        assert action.help and "default" in action.help, action.option_strings
+    text = " ".join(_help().split()).split("options:", 1)[1]
+    assert "--motion-file FILE" in text
+    motion_file = text.split("--motion-file FILE", 1)[1].split("--frames", 1)[0]
+    assert "default" in motion_file and "fps" in motion_file
+
+
 def _fails(capsys, argv) -> str:
     status = main(["drape-reference", *argv])
     err = capsys.readouterr().err
