@@ -77,6 +77,13 @@ def register_train(sub: argparse._SubParsersAction) -> None:
                    help="Adam learning rate of the first 10 epochs (default 1e-3; 1e-4 after)")
     p.add_argument("--lr-epochs", type=int, default=None, metavar="E",
                    help="epochs (60 steps each) at --lr before 1e-4 (default 10)")
+    p.add_argument("--burn-in", type=int, default=None, metavar="F",
+                   help="frames of motion the GRU reads (no gradient) before each training "
+                   "window, from a zero state at the motion's start as at inference; 0: the "
+                   "paper's random state at the window (default 90)")
+    p.add_argument("--shapes", type=int, default=None, metavar="N",
+                   help="training body shapes, phenotypes drawn uniformly in [0, 1] (default "
+                   "128)")
     p.add_argument("-o", "--out", required=True, metavar="DIR", help="run folder")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in DIR (same settings); without it DIR starts afresh")
@@ -95,7 +102,7 @@ def _settings(args):
         if getattr(args, k) is not None:
             mk[k] = getattr(args, k)
     tk = {"seed": args.seed, "init": args.init}
-    for k in ("random_motions", "lr", "lr_epochs"):
+    for k in ("random_motions", "lr", "lr_epochs", "burn_in", "shapes"):
         if getattr(args, k) is not None:
             tk[k] = getattr(args, k)
     if args.batch is not None:

@@ -170,6 +170,17 @@ class GapsModel(nn.Module):
         d = self.basis(self.reduce(y)) * self.unit  # (B, T, 3V)
         return d.reshape(b, t, self.n_vertices, 3), h
 
+    def state(self, features: torch.Tensor, hidden: torch.Tensor | None = None) -> torch.Tensor:
+        """The GRU state after reading ``features`` ``(B, T, D)`` (no output layer).
+
+        ``hidden`` ``(depth, B, width)`` is the state before the first frame (zero when None,
+        as at inference); returns the ``(depth, B, width)`` state after the last frame
+        (``T >= 1``).
+        """
+        if hidden is None:
+            hidden = self.zero_state(features.shape[0])
+        return self.gru(features.to(self.template.dtype), hidden)[1]
+
     def skin(self, unposed: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
         """Pose unposed garments ``(N, V, 3)`` with bone transforms ``(N, J, 4, 4)``."""
         return linear_blend_skinning(unposed, self.weights.to(unposed.dtype), self.indices,

@@ -106,6 +106,29 @@ class Trainer:
             wins.append((k, int(rng.integers(0, n - s.window + 1))))
         return i, wins
 
+    def context(self, wins: list, shape: torch.Tensor, h0: torch.Tensor) -> torch.Tensor:
+        """GRU states ``(depth, B, width)`` at the windows' first frames (``burn_in``).
+
+        Each window's motion is read, without gradient, from ``burn_in`` frames before the
+        window (or its first frame, where the state is zero as at inference; elsewhere
+        ``h0``).
+        """
+        n = self.settings.burn_in
+        if n <= 0:
+            return h0
+        out = []
+        with torch.no_grad():
+            for j, (k, st) in enumerate(wins):
+                lo = max(0, st - n)
+                h = h0[:, j:j + 1] if lo > 0 else torch.zeros_like(h0[:, j:j + 1])
+                if st > lo:
+                    seq = self.sequences[k]
+                    f = pose_features(seq.rotations[lo:st][None], seq.velocity[lo:st][None],
+                                      shape[None], self.bones, self.up)
+                    h = self.model.state(f, h)
+                out.append(h)
+        return torch.cat(out, dim=1)
+
     def losses(self, step: int, timing: dict | None = None) -> tuple[torch.Tensor, dict]:
         """The loss of a step (differentiable) and its terms per frame (floats)."""
         s, m = self.settings, self.model
@@ -122,6 +145,7 @@ class Trainer:
         c1 = time.process_time()
         gen = torch.Generator().manual_seed(int(s.seed) * 1_000_003 + int(step))
         h0 = s.hidden_std * torch.randn(m.settings.depth, b, m.settings.width, generator=gen)
+        h0 = self.context(wins, case.shape, h0)
         feats = pose_features(rot, vel, case.shape.expand(b, 6), self.bones, self.up)
         disp, _ = m(feats, h0)
         rest_v = case.rest.vertices.to(disp.dtype)

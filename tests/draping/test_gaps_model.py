@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -249,3 +251,45 @@ def test_time_inference_reports_three_costs(body, trainer):
     t = time_inference(trainer.model, body, frames=4, repeats=1)
     assert set(t) == {"model", "with_skeleton", "with_body_mesh"}
     assert all(v > 0 for v in t.values())
+
+
+def test_burn_in_gives_the_inference_state(trainer):
+    """The state a training window starts from is the state inference reaches at that frame:
+    the GRU read from a zero state at the motion's first frame (``burn_in`` covers it), or
+    from the random state ``burn_in`` frames earlier; ``burn_in = 0`` keeps the random state."""
+    tr = trainer
+    m = tr.model
+    k, seq = 0, tr.sequences[0]
+    shape = tr.case(0).shape
+    feats = pose_features(seq.rotations[None], seq.velocity[None], shape[None], tr.bones, tr.up)
+    gen = torch.Generator().manual_seed(4)
+    h0 = torch.randn(m.settings.depth, 3, m.settings.width, generator=gen)
+    wins = [(k, 0), (k, 5), (k, 9)]
+    with torch.no_grad():
+        full = tr.context(wins, shape, h0)
+        torch.testing.assert_close(full[:, 0], torch.zeros_like(full[:, 0]))
+        for j, (_, st) in enumerate(wins[1:], start=1):
+            _, h = m.gru(feats[:, :st], torch.zeros(m.settings.depth, 1, m.settings.width))
+            torch.testing.assert_close(full[:, j:j + 1], h)
+        # the window's displacements are the ones inference gives at those frames
+        d_inf, _ = m(feats[:, :12])
+        d_win, _ = m(feats[:, 9:12], full[:, 2:3])
+        torch.testing.assert_close(d_win, d_inf[:, 9:12], atol=1e-6, rtol=1e-5)
+        short = dataclasses.replace(tr.settings, burn_in=3)
+        tr.settings, keep = short, tr.settings
+        try:
+            part = tr.context(wins, shape, h0)
+            none = dataclasses.replace(short, burn_in=0)
+            tr.settings = none
+            torch.testing.assert_close(tr.context(wins, shape, h0), h0)
+        finally:
+            tr.settings = keep
+        _, h = m.gru(feats[:, 6:9], h0[:, 2:3].contiguous())
+        torch.testing.assert_close(part[:, 2:3], h)
+        _, h = m.gru(feats[:, 2:5], h0[:, 1:2].contiguous())
+        torch.testing.assert_close(part[:, 1:2], h)
+
+
+def test_burn_in_is_validated():
+    with pytest.raises(ValueError, match="burn_in"):
+        TrainSettings(burn_in=-1)
