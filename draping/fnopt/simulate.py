@@ -92,29 +92,35 @@ def step_function(settings: SimSettings, model=None):
 
 def run(settings: SimSettings, model=None, progress=None) -> Rollout:
     """Roll the settings out (the reference warm-starts from the previous acceleration)."""
+    ref = settings.optimizer == "reference"
     return rollout(settings.sheet(), settings.material, settings.handles, settings.motion,
                    settings.frames, step_function(settings, model), settings.speed, DT,
-                   settings.orientation, settings.repulsion,
-                   warm_start=settings.optimizer == "reference", progress=progress)
+                   settings.orientation, settings.repulsion, warm_start=ref,
+                   dtype=torch.float64 if ref else torch.float32, progress=progress)
 
 
 def reference_rollout(settings: SimSettings, cache_dir: str | Path | None = None,
-                      progress=None) -> Rollout:
-    """The converged reference of ``settings`` (cached as NPZ in ``cache_dir``)."""
+                      progress=None, tol: float = REFERENCE_TOL) -> Rollout:
+    """The converged reference of ``settings`` (cached as NPZ in ``cache_dir``).
+
+    Every step is solved by :func:`solve_reference` to the RMS residual ``tol`` (m/s^2),
+    warm-started from the previous frame's acceleration, with float64 states.
+    """
     from polygeo import runs
 
-    ref = SimSettings(**{**asdict(settings), "material": settings.material,
-                         "optimizer": "reference"})
     path = None
     if cache_dir is not None:
-        fp = runs.fingerprint({**ref.key(), "tol": REFERENCE_TOL,
+        fp = runs.fingerprint({**settings.key(), "tol": tol, "state": "float64",
                                "material": asdict(settings.material)})
         path = Path(cache_dir) / f"reference_{fp}.npz"
         if path.is_file():
             z = np.load(path)
             return Rollout(torch.from_numpy(z["positions"]), z["loss"].tolist(),
                            z["ms"].tolist(), torch.from_numpy(z["handles"]))
-    ro = run(ref, progress=progress)
+    s = settings
+    ro = rollout(s.sheet(), s.material, s.handles, s.motion, s.frames,
+                 lambda p, a0: solve_reference(p, a0, tol=tol), s.speed, DT, s.orientation,
+                 s.repulsion, warm_start=True, dtype=torch.float64, progress=progress)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         buf = {"positions": ro.positions.numpy(), "loss": np.asarray(ro.loss),
