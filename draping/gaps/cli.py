@@ -81,6 +81,9 @@ def register_train(sub: argparse._SubParsersAction) -> None:
                    help="frames of motion the GRU reads (no gradient) before each training "
                    "window, from a zero state at the motion's start as at inference; 0: the "
                    "paper's random state at the window (default 90)")
+    p.add_argument("--grad-clip", type=float, default=None, metavar="C",
+                   help="clip each step's gradient norm at C times the running mean of the "
+                   "previous (clipped) norms; 0: no clipping (default 3)")
     p.add_argument("--shapes", type=int, default=None, metavar="N",
                    help="training body shapes, phenotypes drawn uniformly in [0, 1] (default "
                    "128)")
@@ -102,7 +105,7 @@ def _settings(args):
         if getattr(args, k) is not None:
             mk[k] = getattr(args, k)
     tk = {"seed": args.seed, "init": args.init}
-    for k in ("random_motions", "lr", "lr_epochs", "burn_in", "shapes"):
+    for k in ("random_motions", "lr", "lr_epochs", "burn_in", "shapes", "grad_clip"):
         if getattr(args, k) is not None:
             tk[k] = getattr(args, k)
     if args.batch is not None:

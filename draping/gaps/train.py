@@ -77,6 +77,7 @@ class Trainer:
         self.query = MeshQuery(self.body.rest()[0][0].double(), self.body.faces)
         self.dt = 1.0 / 30.0
         self.step = 0
+        self.grad_ref = float("nan")  # running mean of clipped gradient norms (grad_clip)
         self.timing = dict.fromkeys(STAGES, 0.0)
 
     def case(self, i: int) -> ShapeCase:
@@ -171,23 +172,45 @@ class Trainer:
         c0 = time.process_time()
         self.opt.zero_grad(set_to_none=True)
         ok = bool(torch.isfinite(total))
+        norm = float("nan")
         if ok:
             total.backward()
-            self.opt.step()
+            norm = self.clip()
+            ok = np.isfinite(norm)
+            if ok:
+                self.opt.step()
         self.timing["backward"] += time.process_time() - c0
-        rec = {"step": self.step, "loss": float(total.detach()), "finite": ok,
-               "lr": self.lr(), "epoch": self.epoch(), **per}
+        rec = {"step": self.step, "loss": float(total.detach()), "finite": bool(ok),
+               "lr": self.lr(), "epoch": self.epoch(),
+               "grad_norm": norm if np.isfinite(norm) else None, **per}
         self.step += 1
         return rec
 
+    def clip(self) -> float:
+        """Clip the gradient norm at ``grad_clip`` times the running mean of clipped norms.
+
+        Returns the norm before clipping (NaN or inf: the step is skipped, the mean kept).
+        """
+        c = self.settings.grad_clip
+        ref = self.grad_ref
+        limit = float("inf") if c <= 0 or not np.isfinite(ref) else c * ref
+        norm = float(torch.nn.utils.clip_grad_norm_(self.model.parameters(), limit))
+        if np.isfinite(norm):
+            kept = min(norm, limit)
+            self.grad_ref = kept if not np.isfinite(ref) else 0.98 * ref + 0.02 * kept
+        return norm
+
     def state(self) -> dict:
         """Tensors of a checkpoint."""
-        return {"model": self.model.state_dict(), "optim": self.opt.state_dict()}
+        return {"model": self.model.state_dict(), "optim": self.opt.state_dict(),
+                "grad_ref": torch.tensor(self.grad_ref, dtype=torch.float64)}
 
     def load_state(self, tensors: dict, step: int) -> None:
         """Restore a checkpoint's tensors."""
         self.model.load_state_dict(tensors["model"])
         self.opt.load_state_dict(tensors["optim"])
+        if "grad_ref" in tensors:
+            self.grad_ref = float(tensors["grad_ref"])
         self.step = int(step)
 
 

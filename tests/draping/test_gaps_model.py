@@ -293,3 +293,37 @@ def test_burn_in_gives_the_inference_state(trainer):
 def test_burn_in_is_validated():
     with pytest.raises(ValueError, match="burn_in"):
         TrainSettings(burn_in=-1)
+
+
+def test_gradient_clipping_bounds_a_spike(body):
+    """A step whose gradient is far above the running mean is clipped to grad_clip times that
+    mean (the returned norm is the unclipped one); grad_clip = 0 leaves it; NaN skips."""
+    torch.set_num_threads(1)
+    s = TrainSettings(GapsSettings(garment="tshirt", **SMALL), batch=1, shapes=1,
+                      motion_frames=6, speeds=(1.0,), random_motions=0, seed=2, grad_clip=3.0)
+    tr = Trainer(s, body)
+    params = [p for p in tr.model.parameters()]
+
+    def fake(scale):
+        for i, p in enumerate(params):
+            g = torch.Generator().manual_seed(i)
+            p.grad = scale * torch.randn(p.shape, generator=g)
+        return float(torch.sqrt(sum((p.grad ** 2).sum() for p in params)))
+
+    n1 = fake(1.0)
+    assert tr.clip() == pytest.approx(n1, rel=1e-5) and tr.grad_ref == pytest.approx(n1)
+    n2 = fake(100.0)
+    assert tr.clip() == pytest.approx(n2, rel=1e-5)
+    after = float(torch.sqrt(sum((p.grad ** 2).sum() for p in params)))
+    assert after == pytest.approx(3.0 * n1, rel=1e-4)
+    assert tr.grad_ref == pytest.approx(0.98 * n1 + 0.02 * 3.0 * n1, rel=1e-6)
+    fake(float("nan"))
+    ref = tr.grad_ref
+    assert not np.isfinite(tr.clip()) and tr.grad_ref == ref
+    tr.settings = dataclasses.replace(s, grad_clip=0.0)
+    n3 = fake(100.0)
+    tr.clip()
+    after = float(torch.sqrt(sum((p.grad ** 2).sum() for p in params)))
+    assert after == pytest.approx(n3, rel=1e-5)
+    with pytest.raises(ValueError, match="grad_clip"):
+        TrainSettings(grad_clip=-1.0)
