@@ -4,13 +4,14 @@ The objective is the energy of :func:`draping.reference.frame_energy` evaluated 
 kernels of :mod:`draping.physics.fused` (membrane, bending) plus closed forms for gravity,
 inertia and the collision penalty on fixed tangent planes. Three minimisers share it:
 
-- ``newton``: projected Newton. Element Hessians made positive semi-definite
-  (:mod:`draping.physics.fused`), collision Hessians ``6 k_c p n n^T`` and the mass term are
-  assembled into a sparse matrix of 3x3 blocks on a pattern built once; the Newton system is
-  solved by conjugate gradients preconditioned with the factorised Laplacian below, to a
-  relative residual ``min(0.5, sqrt(|g| / |M g|))`` (inexact Newton; the exact, indefinite
-  membrane Hessian with a negative-curvature exit was tried and was not faster on the
-  sheet-over-sphere drapes); backtracking line search.
+- ``newton``: truncated Newton. The exact membrane Hessian (indefinite where the cloth is
+  compressed; ``Objective.project_membrane`` makes it positive semi-definite instead), the
+  Gauss-Newton bending Hessian (:mod:`draping.physics.fused`), collision Hessians
+  ``6 k_c p n n^T``, friction and the mass term are assembled into a sparse matrix of 3x3
+  blocks on a pattern built once; the Newton system is solved by conjugate gradients
+  preconditioned with the factorised Laplacian below, to a relative residual
+  ``min(0.5, sqrt(|g| / |M g|))`` (inexact Newton), stopped at negative curvature (Steihaug:
+  the iterate so far, or the preconditioned gradient); backtracking line search.
 - ``pqn``: L-BFGS whose initial inverse Hessian is that factorised Laplacian (Liu et al. 2017).
 - ``lbfgs``: plain L-BFGS with the usual scaled identity.
 
@@ -105,6 +106,7 @@ class Objective(NamedTuple):
     friction_ref: np.ndarray | None = None  # (V, 3) where a vertex sticking to the body goes
     friction_weight: np.ndarray | None = None  # (V,) mu * lagged normal force (N)
     friction_eps: float = 1e-4  # m: slip below which friction is static (smoothed)
+    project_membrane: bool = False  # PSD (positive stress part) instead of exact membrane Hessian
 
 
 def evaluate(
@@ -124,6 +126,7 @@ def evaluate(
         want_hess,
         blocks,
         st.tri_map,
+        project=ob.project_membrane,
         want_grad=want_grad,
     )
     if ob.bending:

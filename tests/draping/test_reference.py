@@ -145,7 +145,23 @@ def test_objective_matches_frame_energy():
     assert e == pytest.approx(float(et), rel=1e-12)
     np.testing.assert_allclose(g, gt.numpy(), atol=1e-10 * np.abs(g).max())
     assert h.shape == (75, 75)
-    assert np.linalg.eigvalsh(h.toarray()).min() > 0  # the mass term makes it definite
+    # the projected Hessian is definite (mass term); the exact one equals autograd's
+    ob_p = R._objective(pb._replace(settings=R.SolverSettings(hessian="projected")), x.numpy())
+    _, _, h_p = _minimize.evaluate(ob_p, x.numpy(), want_hess=True)
+    assert np.linalg.eigvalsh(h_p.toarray()).min() > 0
+    flat = x.reshape(-1).clone()
+    h_t = torch.autograd.functional.hessian(
+        lambda y: P.stvk_energy(y.reshape(-1, 3), r), flat).numpy()
+    st_ = ob.st
+    m = r.material
+    _, _, h_m = fused.membrane(x.numpy(), st_.faces, st_.dm_inv, st_.area, m.thickness,
+                               m.lame_mu, m.lame_lambda, True, project=False)
+    dense = np.zeros((75, 75))
+    for t_, tri in enumerate(st_.faces):
+        idx = (3 * tri[:, None] + np.arange(3)).ravel()
+        dense[np.ix_(idx, idx)] += h_m[t_]
+    np.testing.assert_allclose(dense, h_t, atol=1e-9 * np.abs(h_t).max())
+    assert ob_p.project_membrane and not ob.project_membrane
 
 
 # ---------------------------------------------------------------------- solver behaviour
