@@ -506,7 +506,7 @@ def main(argv: list[str] | None = None) -> None:
             f"python benchmarks/bm_drape.py --sections {name}"
             + (" --quick" if a.quick else "")
             + (
-                f" --newton-python {a.newton_python}"
+                " --newton-python PYTHON_WITH_NEWTON"  # no machine paths in the record
                 if name == "newton" and a.newton_python
                 else ""
             )
