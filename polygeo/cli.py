@@ -96,7 +96,9 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     """
     parser = argparse.ArgumentParser(
         prog="polygeo",
-        description="Deformable surfaces as local polynomial jets: jets, PolyFit, PolySfT.",
+        description=(
+            "Deformable surfaces as local polynomial jets: jets, PolyFit, PolySfT, draping."
+        ),
     )
     from . import __version__
 
@@ -123,7 +125,7 @@ def _top_level_help() -> None:
     lines = [
         "usage: polygeo [-h] [--version] COMMAND ...",
         "",
-        "Deformable surfaces as local polynomial jets: jets, PolyFit, PolySfT.",
+        "Deformable surfaces as local polynomial jets: jets, PolyFit, PolySfT, draping.",
         "",
         "commands (polygeo COMMAND --help for each one's options, defaults and units):",
     ]
@@ -142,6 +144,11 @@ _HELP = {
     "demo": "run the main jobs on embedded defaults and print their accuracy",
     "bench": "run a benchmark (speed against accuracy; JSON + PNG)",
     "train-stn": "retrain the shipped STN weights",
+    "drape-reference": "physics reference drape of a garment on a posed body (cloth solver)",
+    "drape": "drape a garment with a trained model (GAPS, SNUG-like, NCS-like)",
+    "train-drape": "train a self-supervised draping model for one garment",
+    "simulate": "grid-cloth rollout with FNOpt or a classical optimiser",
+    "train-fnopt": "retrain the FNOpt learned cloth optimiser",
 }
 
 

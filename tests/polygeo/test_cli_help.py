@@ -81,3 +81,15 @@ def test_units_and_meanings_the_issue_asked_for(capsys):
     for name in ("jets", "polyfit", "render", "sft"):
         assert f"  {name} " in listed
     assert "run_env" not in listed  # the shared record helper is not a benchmark
+
+
+def test_top_level_help_describes_every_registered_command(capsys):
+    from importlib.metadata import entry_points
+
+    assert main(["--help"]) == 0
+    listed = capsys.readouterr().out
+    names = {ep.name for ep in entry_points(group="polygeo.commands")}
+    assert {"jets", "sft", "drape", "simulate"} <= names
+    for name in names:
+        line = next(ln for ln in listed.splitlines() if ln.strip().startswith(name + " "))
+        assert "plug-in" not in line, line  # a one-line description, not the module's name
