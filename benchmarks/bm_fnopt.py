@@ -4,13 +4,17 @@ Parts (each writes benchmarks/results/bm_fnopt_<part>.json and a PNG; reference 
 cached in benchmarks/results/fnopt_refs/):
 
 - ``iters``: e_CD / e_3D against ms per frame for FNOpt N in {3, 5, 8, 10, 15, 20} and
-  GD / Adam / L-BFGS (and DCT-preconditioned descent) over their iteration counts, at 32, 64,
-  100 (Tables 6.6-6.7, Figure 6.10 analogues);
+  GD / Adam / L-BFGS (plain, and strong-Wolfe ``lbfgs-wolfe``; DCT-preconditioned descent) over
+  their iteration counts, at 32, 64, 100 (Tables 6.6-6.7, Figure 6.10 analogues);
+- ``lbfgs``: the equal-error comparison (mean e_3D) of L-BFGS variants against FNOpt N = 10;
+- ``reference``: the convergence of the reference over its tolerance;
 - ``super``: FNOpt run at 64 against the 32 rollout upsampled bilinearly to 64 (Table 6.4);
 - ``general``: speed factors 1.2 / 1.5 / 2 and the five handle layouts at 32 (Figures 6.6-6.7);
 - ``sweep``: the width/modes sweep (from benchmarks/fnopt_sweep.py's JSON), charted.
 
-All timings are CPU times of one thread on a shared, busy 2-core machine.
+All timings are CPU times of one thread on a shared, busy 2-core machine: ``cpu_ms_per_frame``
+is the whole rollout's process time per frame (problem set-up, the float64 energy record and
+the state update included), ``step_cpu_ms`` the optimiser's own thread time per frame.
 
     python benchmarks/bm_fnopt.py --part iters --res 64 --frames 60
 """
@@ -98,7 +102,8 @@ def _measure(s: SimSettings, step, ref, every: int) -> dict:
     m = frame_metrics(ro, ref, every)
     return {"e_cd": float(np.mean(m["e_cd"])), "e_3d": float(np.mean(m["e_3d"])),
             "e_cd_last": m["e_cd"][-1], "L_cloth": float(np.mean(ro.loss)),
-            "cpu_ms_per_frame": 1e3 * cpu / s.frames}
+            "cpu_ms_per_frame": 1e3 * cpu / s.frames,
+            "step_cpu_ms": float(np.mean(ro.cpu_ms)), "step_wall_ms": float(np.mean(ro.ms))}
 
 
 def part_iters(args, net) -> dict:
@@ -113,6 +118,7 @@ def part_iters(args, net) -> dict:
     plan = [("fnopt", n) for n in (3, 5, 8, 10, 15, 20)] + \
         [("fnopt-line", 10)] + [("pcg", n) for n in (5, 10, 20)] + \
         [("pgd", n) for n in (10, 30)] + \
+        [("lbfgs-wolfe", n) for n in (20, 50, 100, 200)] + \
         [("lbfgs", n) for n in (10, 30, 100, 200)] + \
         [("adam", n) for n in (10, 100)] + [("gd", n) for n in (10, 100)]
     if args.only:
