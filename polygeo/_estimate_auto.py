@@ -1,44 +1,62 @@
 """Automatic jet order and neighbourhood size (``order="auto"`` and/or ``k="auto"``).
 
 Used by :func:`polygeo.estimate.differential_quantities` on one k-NN list (no weights, radius
-or rings; those keep the stage-by-stage rule of :mod:`polygeo._estimate_stages`). Two passes
-over the chunks of points, so that a point's choice depends on its neighbours only, never on
-the chunk (or tile) it is processed in:
+or rings; those keep the stage-by-stage rule of :mod:`polygeo._estimate_stages`). The normal
+and the curvatures get their own choice (the best setting for one is rarely the best for the
+other: normals prefer wide low-order fits, curvature needs a quadratic term and loses more to
+noise). Passes over the chunks of points, so that a point's choice depends on its neighbours
+only, never on the chunk (or tile) it is processed in:
 
 1. statistics per point (:func:`point_statistics`): in one PCA frame, jets of every candidate
    order fitted on nested neighbourhoods of every candidate size
    (:func:`polygeo._estimate_numba.auto_statistics`: slopes, H, their variances over the noise
-   variance, residuals). Per order, an intersection-of-confidence-intervals rule (ICI) over
-   the sizes gives the largest size whose slopes and H agree with those of all smaller sizes
-   within ``AUTO_K_GAMMA`` standard deviations; each lower order is then compared with the
-   highest order at that size (nested models on the same points: the variance of the
-   difference is the difference of the variances), giving a standardised squared difference
-   ``z`` (about 1 without bias, larger with it).
-2. choice per point (:func:`choose`), pooled over its ``AUTO_K_SMOOTH`` nearest neighbours
-   (itself included), every statistic taken as the median over them: the mean squared error
-   of each order is estimated as its variance at its ICI size plus a squared bias
-   ``max(median z - m0, 0) * variance of the difference`` (``m0`` the median of ``z`` without
-   bias); the order with the least ``log MSE(normal) + log MSE(H)`` wins and the size is the
-   pooled (geometric median) ICI size of that order.
+   variance, residuals). Per order, the noise variance from the residuals and an
+   intersection-of-confidence-intervals size (ICI: the largest size whose slopes and H agree
+   with those of all smaller sizes within ``AUTO_K_GAMMA`` standard deviations), and a bias
+   rate: the least-squares slope ``B`` of each quantity against ``t_s = (n_s / n_0)^(p / 2)``
+   over the sizes (``n_s`` points; ``p`` the power of the neighbourhood radius the leading
+   bias of that order grows with, for evenly spread points: 2 for the slopes of orders 1-2
+   and H of orders 2-3, 4 above), from the differences with the largest size (nested fits on
+   the same points: the variance of a difference is the difference of the variances).
+2. per point (:func:`point_mse`), with ``B`` and its variance pooled (median) over the
+   ``AUTO_K_SMOOTH`` nearest neighbours: the mean squared error of every order and size,
+   ``max(B^2 - var(B), 0) t_s^2 + variance`` (the normal: both slopes summed; H).
+3. choice per point (:func:`choose`): the per-point errors pooled (median) again over the
+   same neighbours; per quantity the (order, size) of least error, the sizes of an order
+   capped by its pooled (geometric median) ICI size.
 
-The point is then fitted at the chosen order and size by the fused kernel, exactly as a fixed
-``(k, order)`` call would fit it.
+The point is then fitted at the chosen curvature setting by the fused kernel, exactly as a
+fixed ``(k, order)`` call would fit it; where the normal's setting differs, the normal comes
+from a fit at that setting (the curvatures' sign and principal directions follow it).
 """
 
 from __future__ import annotations
 
+import warnings
+from dataclasses import replace
+
 import numpy as np
+import torch
 
 from . import jets
 from ._estimate_numba import PARALLEL_MIN, Quantities, auto_statistics
-from ._estimate_stages import AUTO_K_GAMMA, AUTO_K_SMOOTH, Neighbourhoods, Settings, fit_fused
+from ._estimate_output import coeff_signs, flip_frame
+from ._estimate_stages import (
+    AUTO_K_GAMMA,
+    AUTO_K_SMOOTH,
+    Neighbourhoods,
+    Settings,
+    fit_fused,
+)
 
-__all__ = ["fit_auto", "point_statistics", "choose"]
+__all__ = ["fit_auto", "point_statistics", "point_mse", "choose", "best_setting", "merge_normals"]
 
-#: Medians of ``z`` for unbiased fits: normals (mean of two chi2_1: chi2_2 / 2), H (chi2_1).
-_Z0 = np.array([0.693, 0.455])
+#: Next-best settings tried where the fused fit flags the chosen one.
+_RETRIES = 3
 #: Degrees of freedom (in coefficients) from which a fit's residual enters the noise estimate.
 _MIN_DOF = 3
+#: Power of the neighbourhood radius of the leading bias, per order: slopes (normal), H.
+_BIAS_POWER = {"normal": {1: 2, 2: 2, 3: 4, 4: 4}, "H": {1: 2, 2: 2, 3: 2, 4: 4}}
 
 
 def candidate_sizes(hoods: Neighbourhoods, settings: Settings) -> np.ndarray:
@@ -47,9 +65,15 @@ def candidate_sizes(hoods: Neighbourhoods, settings: Settings) -> np.ndarray:
 
 
 def auto_orders(settings: Settings) -> tuple[int, ...]:
-    """Orders tried: ``settings.orders`` without order 1 when a curvature order is present."""
+    """Orders fitted: ``settings.orders``, and order 1 with ``order="auto"``.
+
+    The plane (order 1) serves the normal only (:func:`choose`): its slopes have the least
+    variance, and on a neighbourhood symmetric about the point their bias is of second order.
+    """
     orders = settings.orders
-    return tuple(o for o in orders if o >= 2) or orders
+    if settings.order == "auto" and 1 not in orders:
+        orders = (1,) + tuple(orders)
+    return tuple(orders)
 
 
 def _ici(val, gvar, rss, dof, ok, oi, m):
@@ -82,14 +106,39 @@ def _ici(val, gvar, rss, dof, ok, oi, m):
     return chosen, sig2
 
 
+def bias_rate(y, v, ok, t):
+    """Per query: least-squares slope ``B`` of ``y_s = y_0 + B t_s`` and its variance.
+
+    ``y, v, ok (Q, S)``: a quantity, its variance and whether the fit is well posed, per size;
+    ``t (S,)``. Differences with the largest well-posed size, weighted by the inverse of their
+    variance ``v_s - v_L`` (nested fits). NaN where fewer than two sizes are well posed.
+    """
+    Q, S = y.shape
+    has = ok.any(1)
+    L = np.where(has, S - 1 - np.argmax(ok[:, ::-1], 1), 0)
+    qi = np.arange(Q)
+    D = y - y[qi, L][:, None]
+    dt = t[None, :] - t[L][:, None]
+    vd = np.maximum(v - v[qi, L][:, None], 1e-3 * v)
+    use = ok & (np.arange(S)[None, :] != L[:, None]) & (vd > 0)
+    w = np.where(use, 1.0 / np.where(use, vd, 1.0), 0.0)
+    sxx = (w * dt * dt).sum(1)
+    sxy = (w * dt * np.where(use, D, 0.0)).sum(1)
+    good = sxx > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        B = np.where(good, sxy / np.where(good, sxx, 1.0), np.nan)
+        varB = np.where(good, 1.0 / np.where(good, sxx, 1.0), np.nan)
+    return B, varB
+
+
 def point_statistics(hoods: Neighbourhoods, q, nbr, dist, *, orders, sizes,
                      settings: Settings) -> dict:
-    """Per point of the chunk ``q``: the pooled quantities of :func:`choose` (float64).
+    """Per point of the chunk ``q``: what :func:`point_mse` and :func:`choose` pool (float64).
 
-    Returns ``size (Q, O)`` ICI size index per order, ``var (Q, O, 2)`` variances of the
-    normal (sum over both slopes) and of H at that size, ``z (Q, O, 2)`` standardised squared
-    difference with the highest order at that size and ``vd (Q, O, 2)`` the variance of that
-    difference (NaN where not defined; the highest order's own ``z`` is NaN).
+    Returns ``size (Q, O)`` ICI size index per order (the largest where none is well posed),
+    ``var (Q, O, S, 2)`` variances of the normal (both slopes summed) and of H per size
+    (``inf`` where the fit is not well posed), ``B, varB (Q, O, 3)`` bias rates of the slopes
+    and of H and their variances (NaN where not defined).
     """
     O, S = len(orders), sizes.size
     m_top = jets.n_coeffs(orders[-1])
@@ -99,83 +148,147 @@ def point_statistics(hoods: Neighbourhoods, q, nbr, dist, *, orders, sizes,
                          interpolate=settings.interpolate, sizes=sizes, kframe=kframe)
     val, gvar, rss, dof, ok = st["val"], st["gvar"], st["rss"], st["dof"], st["ok"]
     Q = q.size
-    qi = np.arange(Q)
     size = np.zeros((Q, O), dtype=np.int64)
-    var = np.full((Q, O, 2), np.inf)
-    s2 = np.zeros((Q, O))
+    var = np.full((Q, O, S, 2), np.inf)
+    B = np.full((Q, O, 3), np.nan)
+    varB = np.full((Q, O, 3), np.nan)
+    n_rel = sizes.astype(np.float64) / float(sizes[0])
     for oi, o in enumerate(orders):
-        chosen, s2[:, oi] = _ici(val, gvar, rss, dof, ok, oi, jets.n_coeffs(o))
-        c = np.maximum(chosen, 0)
-        size[:, oi] = np.where(chosen >= 0, c, S - 1)
-        g = gvar[qi, oi, c]
-        good = chosen >= 0
-        var[:, oi, 0] = np.where(good, s2[:, oi] * (g[:, 0] + g[:, 1]), np.inf)
-        var[:, oi, 1] = np.where(good, s2[:, oi] * g[:, 2], np.inf)
-    z = np.full((Q, O, 2), np.nan)
-    vd = np.full((Q, O, 2), np.nan)
-    s2t = s2[:, -1]
-    for oi in range(O - 1):
-        c = size[:, oi]
-        both = ok[qi, oi, c] & ok[qi, -1, c] & (s2t > 0)
-        dv = val[qi, -1, c] - val[qi, oi, c]
-        dg = np.maximum(gvar[qi, -1, c] - gvar[qi, oi, c], 1e-300)
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            zn = (dv[:, 0] ** 2 / dg[:, 0] + dv[:, 1] ** 2 / dg[:, 1]) / (2.0 * s2t)
-            zh = dv[:, 2] ** 2 / (dg[:, 2] * s2t)
-        z[:, oi, 0] = np.where(both, zn, np.nan)
-        z[:, oi, 1] = np.where(both, zh, np.nan)
-        vd[:, oi, 0] = np.where(both, s2t * (dg[:, 0] + dg[:, 1]), np.nan)
-        vd[:, oi, 1] = np.where(both, s2t * dg[:, 2], np.nan)
-    return dict(size=size, var=var, z=z, vd=vd)
+        chosen, s2 = _ici(val, gvar, rss, dof, ok, oi, jets.n_coeffs(o))
+        size[:, oi] = np.where(chosen >= 0, chosen, S - 1)
+        okc = ok[:, oi]
+        v = s2[:, None, None] * gvar[:, oi]  # (Q, S, 3)
+        var[:, oi, :, 0] = np.where(okc, v[..., 0] + v[..., 1], np.inf)
+        var[:, oi, :, 1] = np.where(okc, v[..., 2], np.inf)
+        for j, quantity in ((0, "normal"), (1, "normal"), (2, "H")):
+            t = n_rel ** (_BIAS_POWER[quantity][o] / 2.0)
+            B[:, oi, j], varB[:, oi, j] = bias_rate(val[:, oi, :, j], v[..., j], okc, t)
+    return dict(size=size, var=var, B=B, varB=varB)
 
 
-def choose(stats: dict, pool: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Order index and size (rows) per query from the statistics of its ``pool`` ``(Q, P)``.
-
-    ``pool`` holds row indices into ``stats`` (the query first; ``-1`` padding ignored).
-    """
-    Q, P = pool.shape
-    idx = np.maximum(pool, 0)
-    pad = pool < 0
-    with np.errstate(all="ignore"):
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN slices: no pooled value
-
-            def med(a):
-                x = a[idx]
-                x = np.where(pad.reshape((Q, P) + (1,) * (x.ndim - 2)), np.nan, x)
-                return np.nanmedian(x, axis=1)
-
-            var = med(np.where(np.isfinite(stats["var"]), stats["var"], np.nan))
-            b2 = np.maximum(med(stats["z"]) - _Z0, 0.0) * med(stats["vd"])
-    var = np.where(np.isfinite(var), var, np.inf)
-    mse = var + np.nan_to_num(b2, nan=0.0, posinf=np.inf)
-    tiny = np.finfo(np.float64).tiny
-    with np.errstate(divide="ignore"):
-        score = np.log(np.maximum(mse[..., 0], tiny)) + np.log(np.maximum(mse[..., 1], tiny))
-    if mse.shape[1] and not np.any(mse[..., 1] > 0):
-        score = np.log(np.maximum(mse[..., 0], tiny))  # order 1 alone: normals only
-    score = np.where(np.isnan(score), np.inf, score)
-    order_i = np.argmin(score, axis=1)
-    # the size: geometric median of the pooled ICI sizes of that order
-    s_idx = np.take_along_axis(stats["size"][idx], order_i[:, None, None], axis=2)[..., 0]
-    rows = np.log(sizes[s_idx].astype(np.float64))
-    rows[pad] = np.nan
+def _pooled_median(a: np.ndarray, pool: np.ndarray) -> np.ndarray:
+    """Median of ``a[pool]`` over the pool axis (``-1`` padding and NaN ignored)."""
+    x = a[np.maximum(pool, 0)]
+    pad = (pool < 0).reshape(pool.shape + (1,) * (x.ndim - 2))
+    x = np.where(pad, np.nan, x)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        kuse = np.exp(np.nanmedian(rows, axis=1))
-    kuse = np.clip(np.rint(kuse), 1, sizes[-1]).astype(np.int64)
-    return order_i, kuse
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN slices: no pooled value
+        return np.nanmedian(x, axis=1)
+
+
+def point_mse(stats: dict, rows: np.ndarray, pool: np.ndarray, sizes: np.ndarray,
+              orders: tuple[int, ...]) -> np.ndarray:
+    """``(Q, O, S, 2)`` estimated mean squared error of the normal and of H of ``rows``.
+
+    ``pool (Q, P)``: row indices into ``stats`` (the point first; ``-1`` padding): the bias
+    rates are pooled over it (median of ``B``, median of its variance).
+    """
+    Bp = _pooled_median(stats["B"], pool)  # (Q, O, 3)
+    vBp = _pooled_median(stats["varB"], pool)
+    b2 = np.maximum(np.nan_to_num(Bp * Bp - vBp, nan=0.0), 0.0)
+    n_rel = sizes.astype(np.float64) / float(sizes[0])
+    mse = np.array(stats["var"][rows], dtype=np.float64, copy=True)
+    for oi, o in enumerate(orders):
+        t2n = n_rel ** _BIAS_POWER["normal"][o]
+        t2h = n_rel ** _BIAS_POWER["H"][o]
+        mse[:, oi, :, 0] += (b2[:, oi, 0] + b2[:, oi, 1])[:, None] * t2n[None, :]
+        mse[:, oi, :, 1] += b2[:, oi, 2][:, None] * t2h[None, :]
+    return mse
+
+
+def choose(stats: dict, mse: np.ndarray, pool: np.ndarray, sizes: np.ndarray,
+           orders: tuple[int, ...]) -> dict:
+    """Per query, the pooled errors of every setting for the normal and for the curvatures.
+
+    ``mse (N, O, S, 2)`` of every point (:func:`point_mse`), pooled (median) over ``pool
+    (Q, P)`` (the query first; ``-1`` padding ignored); per order the sizes above the pooled
+    (geometric median) ICI size, those the query itself cannot fit and, for the curvatures,
+    order 1 (when a higher order is tried) get ``inf``. Returns
+    ``normal`` and ``curvature``, each ``(Q, O * S)`` (order-major; :func:`best_setting`).
+    """
+    Q = pool.shape[0]
+    O, S = mse.shape[1], mse.shape[2]
+    m = _pooled_median(np.where(np.isfinite(mse), mse, np.nan), pool)
+    m = np.where(np.isnan(m), np.inf, m)
+    logs = np.log(sizes.astype(np.float64))
+    cap = np.exp(_pooled_median(logs[stats["size"]], pool))  # (Q, O)
+    allowed = sizes[None, None, :] <= cap[:, :, None] * (1 + 1e-9)
+    allowed[:, :, 0] = True
+    own = stats["var"][np.maximum(pool[:, 0], 0)]  # (Q, O, S, 2): the point's own fits
+    flat = np.array([o < 2 for o in orders]) & any(o >= 2 for o in orders)
+    out = {}
+    for c, name in enumerate(("normal", "curvature")):
+        ok = allowed & np.isfinite(own[..., c])  # a setting the point itself can fit
+        if c == 1:
+            ok &= ~flat[None, :, None]  # curvature from a curved jet when there is one
+        out[name] = np.where(ok, m[..., c], np.inf).reshape(Q, O * S)
+    return out
+
+
+def best_setting(score: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(order index (Q,), rows (Q,))`` of least ``score (Q, O * S)`` per query.
+
+    Where no setting is finite: the lowest order at the widest size.
+    """
+    S = sizes.size
+    j = np.argmin(score, axis=1)
+    none = ~np.isfinite(score[np.arange(score.shape[0]), j])
+    return np.where(none, 0, j // S), sizes[np.where(none, S - 1, j % S)]
+
+
+def merge_normals(out: Quantities, rows: np.ndarray, normals: np.ndarray,
+                  status: np.ndarray) -> None:
+    """Give ``rows`` of ``out`` the ``normals`` of another fit, curvatures following them.
+
+    Where the normals point to the other side of the curvature fit's, its curvatures, frame
+    and coefficients flip with them (``k1, k2 -> -k2, -k1``, ``d1 <-> d2``); ``d1`` is then
+    projected onto the new tangent plane and ``d2 = n x d1``. Rows whose normal fit is
+    flagged (``status != 0``) keep their own normal.
+    """
+    keep = status == 0  # a flagged normal fit: the curvature fit's normal stays
+    rows, normals = rows[keep], normals[keep]
+    if rows.size == 0:
+        return
+    n_old = out.normals[rows]
+    neg = np.einsum("ij,ij->i", n_old, normals) < 0
+    k1, k2 = out.curvatures[rows, 0].copy(), out.curvatures[rows, 1].copy()
+    d1, d2 = out.d1[rows].copy(), out.d2[rows].copy()
+    out.curvatures[rows, 0] = np.where(neg, -k2, k1)
+    out.curvatures[rows, 1] = np.where(neg, -k1, k2)
+    out.curvatures[rows, 2] = np.where(neg, -1.0, 1.0) * out.curvatures[rows, 2]
+    d1 = np.where(neg[:, None], d2, d1)
+    s = np.where(neg, -1.0, 1.0)
+    out.frame[rows] = flip_frame(out.frame[rows], s)
+    order = next(o for o in range(1, 5) if jets.n_coeffs(o) == out.coeffs.shape[1])
+    out.coeffs[rows] = out.coeffs[rows] * coeff_signs(torch.from_numpy(s), order).numpy()
+    d1 = d1 - np.einsum("ij,ij->i", d1, normals)[:, None] * normals
+    nd = np.linalg.norm(d1, axis=1, keepdims=True)
+    d1 = np.where(nd > 0, d1 / np.where(nd > 0, nd, 1.0), d1)
+    out.d1[rows] = d1
+    out.d2[rows] = np.cross(normals, d1)
+    out.normals[rows] = normals
+
+
+def _fit_choice(hoods, out, q, nbr, dist, order_i, kuse, orders, settings) -> None:
+    """Fused fits of the queries ``q`` at their chosen order index and size, into ``out``."""
+    for oi, o in enumerate(orders):
+        sel = order_i == oi
+        if sel.any():
+            fit_fused(hoods, q[sel], nbr[sel], dist[sel], kuse[sel], out, order=o,
+                      gaussian=False, settings=settings, parallel_min=PARALLEL_MIN // 8)
 
 
 def fit_auto(hoods: Neighbourhoods, out: Quantities, *, settings: Settings) -> None:
-    """Both passes (statistics, then pooled choice and fused fit) over all finite points."""
+    """All passes (statistics, errors, pooled choice and fused fits) over all finite points."""
     orders = auto_orders(settings)
+    if 1 not in settings.max_cond:  # the plane added for the normal: the strictest bound
+        settings = replace(settings, max_cond={1: min(settings.max_cond.values()),
+                                               **settings.max_cond})
     sizes = candidate_sizes(hoods, settings)
     n = hoods.P.shape[0]
+    n_pool = max(int(AUTO_K_SMOOTH), 1)
     stats: dict | None = None
+    pools = np.full((n, n_pool), -1, dtype=np.int64)
     for q in hoods.chunks(settings.batch_size, settings.progress):
         nbr, dist = hoods.query(q)
         part = point_statistics(hoods, q, nbr, dist, orders=orders, sizes=sizes,
@@ -185,18 +298,36 @@ def fit_auto(hoods: Neighbourhoods, out: Quantities, *, settings: Settings) -> N
                                 dtype=v.dtype) for k, v in part.items()}
         for k, v in part.items():
             stats[k][q] = v
+        # the pool: the point and its nearest neighbours (the k-NN list starts with the point)
+        pools[q, : min(n_pool, nbr.shape[1])] = nbr[:, :n_pool]
     if stats is None:
         return
-    n_pool = max(int(AUTO_K_SMOOTH), 1)
+    mse = np.full(stats["var"].shape, np.inf, dtype=np.float32)
+    for q in hoods.chunks(settings.batch_size, False):
+        mse[q] = point_mse(stats, q, pools[q], sizes, orders)
     for q in hoods.chunks(settings.batch_size, settings.progress):
         nbr, dist = hoods.query(q)
-        # the pool: the point and its nearest neighbours (the k-NN list starts with the point)
-        pool = nbr[:, :n_pool]
-        order_i, kuse = choose(stats, pool, sizes)
-        for oi, o in enumerate(orders):
-            sel = order_i == oi
-            if not sel.any():
-                continue
-            qs = q[sel]
-            fit_fused(hoods, qs, nbr[sel], dist[sel], kuse[sel], out, order=o, gaussian=False,
-                      settings=settings, parallel_min=PARALLEL_MIN // 8)
+        score = choose(stats, mse, pools[q], sizes, orders)
+        on, kn = best_setting(score["normal"], sizes)
+        oc, kc = best_setting(score["curvature"], sizes)
+        other = (on != oc) | (kn != kc)
+        # the normal's setting first (kept for the points whose curvature setting differs)
+        _fit_choice(hoods, out, q[other], nbr[other], dist[other], on[other], kn[other],
+                    orders, settings)
+        rows = q[other]
+        n_nrm, n_st = out.normals[rows].copy(), out.status[rows].copy()
+        _fit_choice(hoods, out, q, nbr, dist, oc, kc, orders, settings)
+        # a setting the fused fit flags (its own frame found the system degenerate): the
+        # next best, a few times
+        sc = score["curvature"]
+        for _ in range(_RETRIES):
+            bad = np.flatnonzero(out.status[q] != 0)
+            if bad.size == 0:
+                break
+            sc[bad, np.searchsorted(sizes, kc[bad]) + oc[bad] * sizes.size] = np.inf
+            ob, kb = best_setting(sc[bad], sizes)
+            fin = np.isfinite(sc[bad]).any(1)
+            bad, ob, kb = bad[fin], ob[fin], kb[fin]
+            oc[bad], kc[bad] = ob, kb
+            _fit_choice(hoods, out, q[bad], nbr[bad], dist[bad], ob, kb, orders, settings)
+        merge_normals(out, rows, n_nrm, n_st)

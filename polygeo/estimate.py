@@ -248,15 +248,18 @@ def differential_quantities(
         ``n_coeffs(order) - 1`` (5 for order 2).
         ``"auto"`` (alone or with ``order="auto"``, on a k-NN list without weights): per
         point, the order of ``auto_orders`` and the size of ``k_candidates`` with the least
-        estimated mean squared error of the normal and of H (:mod:`polygeo._estimate_auto`):
-        per order, the largest size whose slopes and H agree with those of all smaller sizes
-        within ``AUTO_K_GAMMA`` standard deviations (ICI); each lower order's bias from its
-        difference with the highest order at that size; every statistic pooled (median) over
-        the ``AUTO_K_SMOOTH`` nearest neighbours, so that the choice does not depend on the
-        chunk a point is processed in. The point is then fitted exactly as the fixed
-        ``(k, order)`` chosen. Clean data get a 4-jet on small neighbourhoods, noisy data
-        wider ones and lower orders (figures: README, Performance). With weights, a radius or
-        rings the older per-point ICI on sizes and F-test on orders apply.
+        estimated mean squared error (:mod:`polygeo._estimate_auto`), chosen apart for the
+        normal and for the curvatures: variances from the fits' residuals, bias from how
+        each quantity drifts with the neighbourhood size, sizes capped where the fits of
+        nested neighbourhoods stop agreeing within ``AUTO_K_GAMMA`` standard deviations
+        (ICI); every statistic pooled (median) over the ``AUTO_K_SMOOTH`` nearest neighbours,
+        so that the choice does not depend on the chunk a point is processed in, nor on the
+        unit. The curvatures (and ``order``, ``n_neighbors``, ``frame``, ``coeffs``) are
+        exactly those of the fixed ``(k, order)`` chosen for them; the normal is that of the
+        fixed setting chosen for it (with ``order="auto"`` possibly a plane), the curvatures'
+        signs and directions following it. Clean data get a 4-jet on small neighbourhoods,
+        noisy data wider ones and lower orders (figures: README, Performance). With weights,
+        a radius or rings the older per-point ICI on sizes and F-test on orders apply.
     radius : float, optional
         Use all neighbours within this distance (L) instead of k nearest (``k`` then caps
         the count at ``k + 1`` points, nearest kept, unless ``k="auto"``).
