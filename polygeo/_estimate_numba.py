@@ -7,8 +7,6 @@ in one parallel loop whose work arrays stay in cache:
 
 * :func:`frames_fit_quantities` — the stages frames -> fit -> quantities of the common case
   (one neighbourhood size per point, one order), results straight into the output arrays;
-* :func:`auto_k_counts` — ``k="auto"``: per point, the neighbourhood size chosen by the
-  intersection of confidence intervals over nested neighbourhoods of one sorted k-NN list;
 * :func:`auto_statistics` — ``order="auto"`` / ``k="auto"``: per point, jets of every
   candidate order on every candidate nested neighbourhood (slopes, H, their variances),
   the statistics :mod:`polygeo._estimate_auto` chooses from.
@@ -40,7 +38,6 @@ __all__ = [
     "Quantities",
     "PARALLEL_MIN",
     "frames_fit_quantities",
-    "auto_k_counts",
     "auto_statistics",
 ]
 
@@ -146,7 +143,7 @@ def frames_fit_quantities(hood: Hoods, jet: JetSettings, out: Quantities,
     kernel(**hood._asdict(), **jet._asdict(), **out._asdict())
 
 
-# ----------------------------------------------------------------------------- k = "auto"
+# ----------------------------------------------------------------------------- auto order + k
 
 
 @nb.njit(cache=True, inline="always")
@@ -161,207 +158,8 @@ def _g_column(L, Ld, D, m, a, g, y, col):
 
 
 @nb.njit(cache=True, inline="always")
-def _size_statistics(uv, z, valid, sizes, order, max_cond, interpolate, ep, eq, ws, stats):
-    """Fits over the nested neighbourhoods (first ``sizes[s]`` rows) of item 0.
-
-    Moments accumulated along the sorted rows so that every size costs one small solve. Per
-    well-posed size ``t`` (in ``stats``): residual sum of squares, degrees of freedom, count,
-    ``a10, a01, H`` and their variances over ``sigma^2``, and the coefficients. Returns the
-    number of sizes stored.
-    """
-    mom, rhs, pu, pv, N, L, Linv, D, Ld, x, g, y, col = ws
-    st_rss, st_dof, st_cnt, st_val, st_g, st_cf = stats
-    K = uv.shape[1]
-    M = ep.shape[0]
-    S = sizes.shape[0]
-    n2 = 2 * order
-    hmax = 0.0
-    for j in range(K):
-        if valid[0, j]:
-            hmax = max(hmax, uv[0, j, 0] ** 2 + uv[0, j, 1] ** 2)
-    h = math.sqrt(hmax) if hmax > 0.0 else 1.0
-    ih = 1.0 / h
-    for p in range(n2 + 1):
-        for q in range(n2 + 1):
-            mom[p, q] = 0.0
-    for j in range(M):
-        rhs[j] = 0.0
-    zz = 0.0
-    cnt = 0
-    si = 0
-    ns = 0  # well-posed sizes stored
-    for j in range(K):
-        if valid[0, j]:
-            accumulate_sample(uv[0, j, 0] * ih, uv[0, j, 1] * ih, 1.0, z[0, j], mom, rhs,
-                              pu, pv, n2, M, ep, eq)
-            zz += z[0, j] ** 2
-            cnt += 1
-        if j + 1 < sizes[si] and j < K - 1:
-            continue
-        si += 1
-        cc = math.inf
-        if cnt >= M:
-            cc = factor_normal(mom, ep, eq, M, N, D, L, Ld, Linv)
-        if not cc <= max_cond:
-            if ns > 0 or si >= S:
-                break  # a larger neighbourhood turned degenerate: keep the smaller
-            continue
-        for m in range(M):
-            g[m] = D[m] * rhs[m]
-        solve_factored(L, Ld, M, g, y)
-        for m in range(M):
-            x[m] = D[m] * y[m]
-        if interpolate:
-            _g_column(L, Ld, D, M, 0, g, y, col)
-            f = x[0] / col[0]
-            for m in range(M):
-                x[m] -= col[m] * f
-            x[0] = 0.0
-        # residual sum of squares from the moments
-        xsx = 0.0
-        xr = 0.0
-        for m in range(M):
-            xr += x[m] * rhs[m]
-            for m2 in range(M):
-                xsx += x[m] * x[m2] * mom[ep[m] + ep[m2], eq[m] + eq[m2]]
-        st_rss[ns] = max(zz - 2.0 * xr + xsx, 0.0)
-        st_dof[ns] = cnt - M + (1 if interpolate else 0)
-        st_cnt[ns] = cnt
-        # slopes and H (to first order a20 + a02) and their variances / sigma^2
-        _g_column(L, Ld, D, M, 1, g, y, col)
-        st_g[ns, 0] = max(col[1], 0.0) * ih * ih
-        _g_column(L, Ld, D, M, 2, g, y, col)
-        st_g[ns, 1] = max(col[2], 0.0) * ih * ih
-        st_val[ns, 0] = x[1] * ih
-        st_val[ns, 1] = x[2] * ih
-        st_val[ns, 2] = 0.0
-        st_g[ns, 2] = 0.0
-        if M >= 6:
-            _g_column(L, Ld, D, M, 3, g, y, col)
-            g33 = col[3]
-            g35 = col[5]
-            _g_column(L, Ld, D, M, 5, g, y, col)
-            st_g[ns, 2] = max(g33 + col[5] + 2.0 * g35, 0.0) * ih ** 4
-            w_ = math.sqrt(1.0 + st_val[ns, 0] ** 2 + st_val[ns, 1] ** 2)
-            st_val[ns, 2] = (x[3] + x[5]) * ih * ih / w_
-        pu[0] = 1.0
-        for p in range(1, order + 1):
-            pu[p] = pu[p - 1] * ih
-        for m in range(M):
-            st_cf[ns, m] = x[m] * pu[ep[m] + eq[m]]
-        ns += 1
-        if si >= S:
-            break
-    return ns
-
-
-@nb.njit(cache=True, inline="always")
-def _ici_choice(ns, stats, gamma, min_dof):
-    """Index of the largest stored size whose intervals meet those of all smaller ones.
-
-    The noise level at step ``t`` is the mean residual variance of the fits so far that have at
-    least ``min_dof`` degrees of freedom (of the first well-posed one before them); -1 when no
-    size was stored.
-    """
-    st_rss, st_dof, _, st_val, st_g, _ = stats
-    chosen = -1
-    lo_u = lo_v = lo_h = -math.inf
-    hi_u = hi_v = hi_h = math.inf
-    s2sum = 0.0
-    s2n = 0
-    sig2 = 0.0
-    for t in range(ns):
-        if st_dof[t] >= min_dof or (s2n == 0 and st_dof[t] > 0):
-            if st_dof[t] >= min_dof and s2n > 0 and t > 0 and st_dof[t - 1] < min_dof:
-                s2sum = 0.0  # drop the small-sample placeholder
-                s2n = 0
-            s2sum += st_rss[t] / st_dof[t]
-            s2n += 1
-            sig2 = s2sum / s2n
-        sd_u = gamma * math.sqrt(sig2 * st_g[t, 0])
-        sd_v = gamma * math.sqrt(sig2 * st_g[t, 1])
-        sd_h = gamma * math.sqrt(sig2 * st_g[t, 2])
-        lo_u = max(lo_u, st_val[t, 0] - sd_u)
-        hi_u = min(hi_u, st_val[t, 0] + sd_u)
-        lo_v = max(lo_v, st_val[t, 1] - sd_v)
-        hi_v = min(hi_v, st_val[t, 1] + sd_v)
-        lo_h = max(lo_h, st_val[t, 2] - sd_h)
-        hi_h = min(hi_h, st_val[t, 2] + sd_h)
-        if chosen >= 0 and (lo_u > hi_u or lo_v > hi_v or lo_h > hi_h):
-            break  # the intervals no longer intersect: bias dominates
-        chosen = t
-    return chosen
-
-
-def _auto_k_counts_py(points, source, nbr, dist, order, max_cond, interpolate, ep, eq, sizes,
-                      kframe, gamma, min_dof, counts):
-    """Chosen neighbourhood size (distinct points used) of each query into ``counts[i]``.
-
-    Nested neighbourhoods (first ``sizes[s]`` rows) of one sorted k-NN list ``nbr``; one
-    frame per point (PCA of the first ``kframe`` rows). Per size the slopes ``a10, a01`` and
-    ``H`` with their standard deviations ``sigma sqrt(G_ii)`` (``G`` the inverse moment
-    matrix); the chosen size is the largest whose confidence intervals ``value +- gamma sd``
-    still intersect those of every smaller size (ICI rule, :func:`_ici_choice`). A point with
-    no well-posed size gets the count of the full list's fit.
-    """
-    Q, K = nbr.shape
-    M = ep.shape[0]
-    S = sizes.shape[0]
-    n2 = 2 * order
-    nchunks = (Q + _CHUNK - 1) // _CHUNK
-    for c in nb.prange(nchunks):
-        uv = np.empty((1, K, 2))
-        z = np.empty((1, K))
-        valid = np.empty((1, K), dtype=np.bool_)
-        w1 = np.ones((1, 1))
-        Rl = np.empty((1, 3, 3))
-        lam = np.empty((1, 3))
-        a = np.empty((3, 3))
-        v = np.empty((3, 3))
-        cf = np.empty((1, M))
-        ws = (np.empty((n2 + 1, n2 + 1)), np.empty(M), np.empty(n2 + 1), np.empty(n2 + 1),
-              np.empty((M, M)), np.empty((M, M)), np.empty((M, M)), np.empty(M), np.empty(M),
-              np.empty(M), np.empty(M), np.empty(M), np.empty(M))
-        stats = (np.empty(S), np.empty(S, dtype=np.int64), np.empty(S, dtype=np.int64),
-                 np.empty((S, 3)), np.empty((S, 3)), np.empty((S, M)))
-        scratch = fit_scratch(order, K)
-        for i in range(c * _CHUNK, min(Q, (c + 1) * _CHUNK)):
-            height_frame(points, source[i], nbr[i], dist[i], K, uv, z, valid, 0, Rl, 0, lam, a,
-                         v, kframe)
-            ns = _size_statistics(uv, z, valid, sizes, order, max_cond, interpolate, ep, eq, ws,
-                                  stats)
-            chosen = _ici_choice(ns, stats, gamma, min_dof)
-            if chosen >= 0:
-                counts[i] = stats[2][chosen]
-            else:
-                # no candidate well posed: the full list with the usual order fallback
-                _, _, _, _, _, cn = fit_item(uv, z, w1, False, valid, True, 0, 0.0, order, True,
-                                             max_cond, 100.0, interpolate, ep, eq, scratch, cf,
-                                             0)
-                counts[i] = cn
-
-
-auto_k_counts_par, auto_k_counts_ser = njit_pair(_auto_k_counts_py)
-
-
-def auto_k_counts(hood: Hoods, jet: JetSettings, *, sizes: np.ndarray, kframe: int,
-                  gamma: float, min_dof: int) -> np.ndarray:
-    """``(Q,)`` int64: the size chosen per query by :func:`_auto_k_counts_py`."""
-    counts = np.empty(hood.nbr.shape[0], dtype=np.int64)
-    par = hood.nbr.shape[0] >= PARALLEL_MIN // 8
-    kernel = auto_k_counts_par if par else auto_k_counts_ser
-    kernel(points=hood.points, source=hood.source, nbr=hood.nbr, dist=hood.dist,
-           order=jet.order, max_cond=jet.max_cond, interpolate=jet.interpolate, ep=jet.ep,
-           eq=jet.eq, sizes=sizes, kframe=kframe, gamma=gamma, min_dof=min_dof, counts=counts)
-    return counts
-
-
-# ----------------------------------------------------------------------------- auto order + k
-
-
-@nb.njit(cache=True, inline="always")
 def _nested_fits(uv, z, valid, sizes, n_orders, orders, max_conds, interpolate, ep, eq, ws, i,
-                 val, gvar, rss, dof, ok, coef):
+                 val, gvar, rss, dof, ok):
     """Fits of every order over the nested neighbourhoods (first ``sizes[s]`` rows) of item 0.
 
     One pass of moments (up to degree ``2 max(orders)``) along the sorted rows serves every
@@ -428,13 +226,6 @@ def _nested_fits(uv, z, valid, sizes, n_orders, orders, max_conds, interpolate, 
                 gvar[i, oi, si, 0] = max(col[1], 0.0) * ih * ih
                 _g_column(L, Ld, D, M, 2, g, y, col)
                 gvar[i, oi, si, 1] = max(col[2], 0.0) * ih * ih
-                sc = 1.0
-                dg = 0
-                for m in range(M):
-                    while dg < ep[m] + eq[m]:
-                        sc *= ih
-                        dg += 1
-                    coef[i, oi, si, m] = x[m] * sc
                 val[i, oi, si, 0] = x[1] * ih
                 val[i, oi, si, 1] = x[2] * ih
                 val[i, oi, si, 2] = 0.0
@@ -452,7 +243,7 @@ def _nested_fits(uv, z, valid, sizes, n_orders, orders, max_conds, interpolate, 
 
 
 def _auto_statistics_py(points, source, nbr, dist, orders, max_conds, interpolate, ep, eq,
-                        sizes, kframe, val, gvar, rss, dof, ok, coef):
+                        sizes, kframe, val, gvar, rss, dof, ok):
     """Per query ``i``: :func:`_nested_fits` of every order and size in one PCA frame.
 
     The frame is that of the first ``kframe`` rows; ``ep, eq`` are the exponents of the
@@ -478,7 +269,7 @@ def _auto_statistics_py(points, source, nbr, dist, orders, max_conds, interpolat
             height_frame(points, source[i], nbr[i], dist[i], K, uv, z, valid, 0, Rl, 0, lam, a,
                          v, kframe)
             _nested_fits(uv, z, valid, sizes, O, orders, max_conds, interpolate, ep, eq, ws, i,
-                         val, gvar, rss, dof, ok, coef)
+                         val, gvar, rss, dof, ok)
 
 
 auto_statistics_par, auto_statistics_ser = njit_pair(_auto_statistics_py)
@@ -498,8 +289,7 @@ def auto_statistics(hood: Hoods, *, orders: np.ndarray, max_conds: np.ndarray,
     O, S = orders.shape[0], sizes.shape[0]
     e = exponents_np(int(orders[-1]))
     out = dict(val=np.zeros((Q, O, S, 3)), gvar=np.zeros((Q, O, S, 3)), rss=np.zeros((Q, O, S)),
-               dof=np.zeros((Q, O, S), dtype=np.int64), ok=np.zeros((Q, O, S), dtype=np.bool_),
-               coef=np.zeros((Q, O, S, e.shape[0])))
+               dof=np.zeros((Q, O, S), dtype=np.int64), ok=np.zeros((Q, O, S), dtype=np.bool_))
     par = Q >= PARALLEL_MIN // 8
     kernel = auto_statistics_par if par else auto_statistics_ser
     kernel(points=hood.points, source=hood.source, nbr=hood.nbr, dist=hood.dist,

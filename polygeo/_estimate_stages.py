@@ -4,7 +4,7 @@ neighbours (:class:`Neighbourhoods`) -> frames -> fit -> quantities, per chunk o
 one of three stage functions:
 
 * :func:`fit_fused` — the compiled kernels of :mod:`polygeo._estimate_numba` (one size and one
-  order per point; ``k="auto"`` picks the size first with :func:`choose_sizes_auto_k`);
+  order per point, given per point by :mod:`polygeo._estimate_auto` for ``k="auto"``);
 * :func:`fit_unfused` — the same stages one after the other over the chunk (NumPy frames,
   :func:`polygeo.jets.fit`, :func:`polygeo._diffgeo_numba.jet_geometry`): several sizes
   (``k="auto"`` with weights, a radius or rings) and several orders (``order="auto"``, the
@@ -29,7 +29,6 @@ from ._estimate_numba import (
     Hoods,
     JetSettings,
     Quantities,
-    auto_k_counts,
     frames_fit_quantities,
 )
 from ._frames_numba import height_frames_par, height_frames_ser
@@ -124,9 +123,6 @@ class Neighbourhoods:
         radius = settings.radius
         self.upper = np.inf if radius is None else np.nextafter(radius, np.inf) * (1 + 1e-12)
         self.graph = np.full((n if graph else 0, min(6, self.k_query)), -1, dtype=np.int64)
-        #: ``k="auto"``: each point's own size choice once computed (-1: not yet), so that
-        #: the pooling sees every neighbour's choice whatever the chunks
-        self.auto_counts: np.ndarray | None = None
 
     def chunks(self, batch_size: int, progress: bool | None):
         """Finite query points in chunks of at most ``batch_size``, in grid-cell order.
@@ -181,7 +177,6 @@ class Neighbourhoods:
         P, finite = self.P, self.finite
         n = P.shape[0]
         self.deduped = True
-        self.auto_counts = None  # choices made on the tree with duplicates are stale
         self.source = _representatives(P, finite)
         Pt = P.copy()
         Pt[self.source != np.arange(n)] = np.nan
@@ -255,61 +250,16 @@ def jet_settings(order: int, *, gaussian: bool, max_cond: float,
                        eq=np.ascontiguousarray(e[:, 1]))
 
 
-def choose_sizes_auto_k(hoods: Neighbourhoods, q, nbr, dist, *, order: int,
-                        settings: Settings) -> np.ndarray:
-    """``k="auto"``: rows of the k-NN list to use per query ``(Q,)`` int64.
-
-    Per point, the size chosen by the confidence-interval rule of
-    :func:`polygeo._estimate_numba.auto_k_counts` at jets of ``order``; the per-point choices
-    are noisy, so each point then takes the geometric median choice of its
-    ``AUTO_K_SMOOTH`` nearest neighbours (:func:`smooth_sizes`). The neighbours' own choices
-    are computed where the chunk lacks them and kept (``hoods.auto_counts``), so the result
-    of a point does not depend on the chunks (nor on the tiles of :mod:`polygeo.tiling`).
-    """
-    sizes = np.array(sorted({min(c, nbr.shape[1]) for c in settings.sizes}), dtype=np.int64)
-    m = jets.n_coeffs(order)
-    kframe = int(min(sizes, key=lambda c: abs(int(c) - 4 * m)))
-    jet = jet_settings(order, gaussian=False, max_cond=float(settings.max_cond[order]),
-                       interpolate=settings.interpolate)
-
-    def counts_of(rows, rnbr, rdist):
-        return auto_k_counts(hoods.hoods(rows, rnbr, rdist, None), jet, sizes=sizes,
-                             kframe=kframe, gamma=AUTO_K_GAMMA, min_dof=3 * m)
-
-    if hoods.auto_counts is None:
-        hoods.auto_counts = np.full(hoods.P.shape[0], -1, dtype=np.int64)
-    cache = hoods.auto_counts
-    new = cache[q] < 0
-    if new.any():
-        cache[q[new]] = counts_of(q[new], nbr[new], dist[new])
-    # the pooled neighbours outside the chunk: their own neighbourhoods and choices
-    pool = nbr[:, : max(AUTO_K_SMOOTH, 1)]
-    more = np.unique(pool[pool >= 0])
-    more = more[cache[more] < 0]
-    if more.size:
-        cache[more] = counts_of(more, *hoods.query_more(more))
-    return smooth_sizes(cache, nbr, AUTO_K_SMOOTH, own=cache[q])
-
-
 def fit_compiled(hoods: Neighbourhoods, q, nbr, dist, out: Quantities, *,
                  settings: Settings) -> None:
     """Frames -> fit -> quantities of the chunk ``q`` into ``out`` (compiled, not differentiable).
 
-    Fused (:func:`fit_fused`) for one size and one order per point (``k="auto"``: the size
-    chosen first by :func:`choose_sizes_auto_k` at the lowest order), else stage by stage
-    (:func:`fit_unfused`).
+    Fused (:func:`fit_fused`) for one size and one order per point, else stage by stage
+    (:func:`fit_unfused`). (``k="auto"`` / ``order="auto"`` on one k-NN list without weights
+    never come here: :func:`polygeo._estimate_auto.fit_auto`.)
     """
     orders = settings.orders
     sizes = candidate_sizes(hoods, nbr, settings)
-    if hoods.auto_k and settings.weights is None and settings.radius is None and hoods.ring is None:
-        # k="auto" on one k-NN list: sizes chosen at the lowest order; with several orders,
-        # the order test then runs at the chosen sizes
-        kuse = choose_sizes_auto_k(hoods, q, nbr, dist, order=orders[0], settings=settings)
-        if len(orders) == 1:
-            fit_fused(hoods, q, nbr, dist, kuse, out, order=orders[0], gaussian=False,
-                      settings=settings, parallel_min=PARALLEL_MIN // 8)
-            return
-        sizes = [kuse]
     if len(sizes) == 1 and len(orders) == 1:
         kuse = np.full(q.size, int(sizes[0]), dtype=np.int64)
         fit_fused(hoods, q, nbr, dist, kuse, out, order=orders[0],
@@ -373,22 +323,6 @@ def fit_local(local: Local, order: int, weights: np.ndarray | None, max_cond: fl
         backend="numba",
         interpolate=interpolate,
     )
-
-
-def smooth_sizes(chosen: np.ndarray, nbr: np.ndarray, k_smooth: int, *,
-                 own: np.ndarray) -> np.ndarray:
-    """Rows of the k-NN list to use per query (pooled automatic choices).
-
-    The geometric median of the chosen sizes (``chosen (N,)``, every point's own choice,
-    < 0 where unknown) of the query's ``k_smooth`` nearest neighbours, its own choice
-    ``own (Q,)`` in place of column 0.
-    """
-    nb_ = nbr[:, : max(k_smooth, 1)]
-    c = np.where(nb_ >= 0, chosen[np.maximum(nb_, 0)], -1)
-    vals = np.where(c >= 0, np.log(np.maximum(c, 1)), np.nan)
-    vals[:, 0] = np.log(np.maximum(own, 1))
-    med = np.exp(np.nanmedian(vals, axis=1))
-    return np.clip(np.rint(med), 1, nbr.shape[1]).astype(np.int64)
 
 
 def select_order(fits: list[jets.JetFit], orders: tuple[int, ...], alpha: float) -> np.ndarray:

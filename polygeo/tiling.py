@@ -11,8 +11,9 @@ own points. The halo is exact, not a guess:
   where the k-th distance reaches the edge of the loaded box (a closer point could lie
   outside) the halo grows to that distance and the tile is loaded again, until every own
   point's k neighbours are provably inside;
-- ``k="auto"``: the same with the largest candidate size, for the own points *and* the
-  ``AUTO_K_SMOOTH`` nearest neighbours whose chosen sizes are pooled with theirs.
+- ``k="auto"``: the same with the largest candidate size, for the own points, their
+  ``AUTO_K_SMOOTH`` nearest neighbours (whose errors are pooled with theirs) and those
+  neighbours' own ``AUTO_K_SMOOTH`` nearest (whose bias rates those pool).
 
 So each point sees the same neighbours as in one in-memory call and gets the same numbers (to
 float rounding: the neighbours' summation order may differ). Orientation must then be local
@@ -278,8 +279,11 @@ def _halo_shortfall(xyz: np.ndarray, own: np.ndarray, box, plan: TilePlan,
     if settings.k == "auto":
         from .estimate import AUTO_K_SMOOTH
 
-        first = knn(xyz, min(AUTO_K_SMOOTH + 1, n_fin), queries=xyz[queries]).index
-        queries = np.unique(np.concatenate([queries, first[first >= 0].ravel()]))
+        # two hops: a point's choice pools its neighbours' errors, whose bias rates pool
+        # their own neighbours'
+        for _ in range(2):
+            first = knn(xyz, min(AUTO_K_SMOOTH + 1, n_fin), queries=xyz[queries]).index
+            queries = np.unique(np.concatenate([queries, first[first >= 0].ravel()]))
     dist = knn(xyz, kq, queries=xyz[queries]).distance[:, -1]
     margin = _margins(xyz[queries], box, plan)
     short = dist - margin

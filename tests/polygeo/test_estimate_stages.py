@@ -4,10 +4,17 @@ import numpy as np
 import pytest
 
 from polygeo import synthetic as sy
+from polygeo._estimate_auto import (
+    auto_orders,
+    best_setting,
+    candidate_sizes,
+    choose,
+    point_mse,
+    point_statistics,
+)
 from polygeo._estimate_numba import Quantities
 from polygeo._estimate_stages import (
     Neighbourhoods,
-    choose_sizes_auto_k,
     empty_quantities,
     fit_fused,
     fit_unfused,
@@ -65,13 +72,23 @@ def test_fused_stage_equals_unfused_reference(order, weights, interpolate):
     assert_same(fused, ref)
 
 
+def auto_sizes(hoods, q, nbr, dist, s):
+    """The live ``k="auto"`` choice on one chunk: (order index, rows) for the curvatures."""
+    orders, sizes = auto_orders(s), candidate_sizes(hoods, s)
+    stats = point_statistics(hoods, q, nbr, dist, orders=orders, sizes=sizes, settings=s)
+    pool = nbr[:, :24]  # one chunk holding every point: rows of stats are point indices
+    mse = point_mse(stats, q, pool, sizes, orders)
+    return best_setting(choose(stats, mse, pool, sizes, orders)["curvature"], sizes)
+
+
 @pytest.mark.parametrize("parallel_min", [1, 10**9])
 def test_fused_stage_per_query_sizes_parallel_and_serial(parallel_min):
-    """k="auto"'s refit: a size per query, the same fused (both compilations) and unfused."""
+    """k="auto"'s fit: a size per query, the same fused (both compilations) and unfused."""
     P = noisy_sphere(800, noise=3e-3, seed=1)
-    s = settings(k="auto")
+    s = settings(k="auto", order=2, k_candidates=(8, 12, 16, 24, 32, 48, 64, 96, 128))
     hoods, q, nbr, dist = one_chunk(P, s)
-    kuse = choose_sizes_auto_k(hoods, q, nbr, dist, order=2, settings=s)
+    order_i, kuse = auto_sizes(hoods, q, nbr, dist, s)
+    assert (order_i == 0).all()
     assert kuse.shape == q.shape and kuse.min() >= 1 and kuse.max() <= nbr.shape[1]
     assert np.unique(kuse).size > 1  # the test exercises several sizes
     fused = empty_quantities(len(P), s.n_coeffs)
@@ -83,13 +100,14 @@ def test_fused_stage_per_query_sizes_parallel_and_serial(parallel_min):
 
 
 def test_auto_k_sizes_grow_with_noise():
-    """The ICI rule of the auto-k kernel: noisier data -> larger neighbourhoods."""
+    """The live k="auto" rule: noisier data -> larger neighbourhoods (order 2 fixed)."""
     sizes = []
     for noise in (0.0, 1e-2):
         P = noisy_sphere(3000, noise=noise, seed=2)
-        s = settings(k="auto", k_candidates=(12, 24, 48, 96, 192))
-        hoods, q, nbr, dist = one_chunk(P, s)
-        sizes.append(np.median(choose_sizes_auto_k(hoods, q, nbr, dist, order=2, settings=s)))
+        r = differential_quantities(P, k="auto", order=2, orient="none",
+                                    k_candidates=(12, 24, 48, 96, 192))
+        assert (r.order == 2).all()
+        sizes.append(np.median(r.n_neighbors))
     assert sizes[1] > sizes[0]
 
 
