@@ -568,11 +568,17 @@ def main(argv=None) -> int:
     ap.add_argument("--no-peers", action="store_true", help="skip the peer libraries")
     ap.add_argument("--no-robustness", action="store_true", help="skip the robustness table")
     ap.add_argument("--sections", default="speed,accuracy,parsimony,robustness",
-                    help="comma-separated parts to run (default: all)")
+                    help="comma-separated parts to run: speed, accuracy, parsimony, "
+                         "robustness, scans (default: all but scans)")
+    ap.add_argument("--scan-dir", default=None,
+                    help="folder with the Stanford bunny scans bun000.ply, bun045.ply and "
+                         "bun_zipper.ply for the 'scans' section (not shipped, not downloaded; "
+                         "see bm_jets_scans.py)")
     ap.add_argument("--sizes", default=None,
                     help="comma-separated vertex counts of the accuracy grid (default: 10000,"
                          "100000; --quick: 10000)")
     args = ap.parse_args(argv)
+    argv_ = list(sys.argv[1:] if argv is None else argv)
     start_forkserver()
     isolated(np.zeros, 1)  # launch the server now, while this process is still thread-free
     from tqdm.auto import tqdm
@@ -604,6 +610,10 @@ def main(argv=None) -> int:
                     "processor": platform.processor() or platform.machine(),
                     "python": sys.version.split()[0]},
         "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "command": " ".join(["python", "benchmarks/bm_jets.py"] + [
+            "SCAN_DIR" if i > 0 and a_ == args.scan_dir and argv_[i - 1] == "--scan-dir"
+            else a_ for i, a_ in enumerate(argv_)]),
+        "load_average_start": list(os.getloadavg()),
         "versions": _versions(),
         "quick": bool(args.quick),
         "peers_available": peers,
@@ -649,28 +659,43 @@ def main(argv=None) -> int:
         _print_auto_vs_best(record["auto_vs_best"])
     if "parsimony" in sections:
         _parsimony_section(record, ref_size, park, tqdm, par_noises)
+    if "scans" in sections:
+        from bm_jets_scans import scans_section
+
+        record["scans"] = scans_section(args.scan_dir)
+        if "skipped" in record["scans"]:
+            print(f"scans section skipped: {record['scans']['skipped']}")
     if "robustness" in sections:
         record["robustness"] = run_robustness()
         record["robustness_legend"] = classify.__doc__
         _print_robustness(record["robustness"])
+    record["load_average_end"] = list(os.getloadavg())
     path = out_dir / "bm_jets.json"
     if path.exists() and sections != {"speed", "accuracy", "parsimony", "robustness"}:
         with open(path) as fh:  # keep the parts of an earlier run that were not re-run
             old = json.load(fh)
         for key in ("speed_reference", "accuracy", "parsimony", "robustness",
-                    "robustness_legend"):
+                    "robustness_legend", "scans", "auto_vs_best"):
             if key in old and not record.get(key):
                 record[key] = old[key]
     with open(path, "w") as fh:
         json.dump(record, fh, indent=1, default=_json_default)
-    png = out_dir / "bm_jets.png"
-    measured = dict(record)  # the chart shows this run's sections only (the JSON keeps all)
-    if "accuracy" not in sections:
-        measured["accuracy"] = []
-    if "parsimony" not in sections:
-        measured.pop("parsimony", None)
-    chart(measured, png)
-    print(f"wrote {path} and {png}")
+    pngs = []
+    if sections & {"speed", "accuracy", "parsimony"}:
+        png = out_dir / "bm_jets.png"
+        measured = dict(record)  # the chart shows this run's sections only (the JSON keeps all)
+        if "accuracy" not in sections:
+            measured["accuracy"] = []
+        if "parsimony" not in sections:
+            measured.pop("parsimony", None)
+        chart(measured, png)
+        pngs.append(png)
+    if "scans" in sections and "skipped" not in record["scans"]:
+        from bm_jets_scans import chart as scans_chart
+
+        scans_chart(record["scans"], out_dir / "bm_jets_scans.png")
+        pngs.append(out_dir / "bm_jets_scans.png")
+    print(f"wrote {path}" + "".join(f" and {p}" for p in pngs))
     return 0
 
 
