@@ -66,11 +66,13 @@ def register_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=int, default=None, metavar="N",
                    help="total optimiser steps (default 3000)")
     p.add_argument("--minutes", type=float, default=None, metavar="M",
-                   help="wall-clock budget in minutes: stop (checkpointed, exported) when spent")
+                   help="wall-clock budget in minutes: stop (checkpointed, exported) when spent "
+                   "(default: none, --steps decides)")
     p.add_argument("--batch", type=int, default=None, help="windows per step (default 4)")
     p.add_argument("--seed", type=int, default=0, help="seed of shapes, windows, init (default 0)")
     p.add_argument("--init", default=None, metavar="FILE",
-                   help="start from this model.pt (same garment and architecture): fine-tuning")
+                   help="start from this model.pt (same garment and architecture): fine-tuning "
+                   "(default: none, random initialisation from --seed)")
     p.add_argument("--random-motions", type=int, default=None, metavar="N",
                    help="seeded random training motions, seeds 0..N-1 < 1000 (default 12)")
     p.add_argument("--lr", type=float, default=None,
@@ -218,7 +220,7 @@ def register_drape(sub: argparse._SubParsersAction) -> None:
                    "(snug and ncs need --model) (default gaps)")
     p.add_argument("--model", default=None, metavar="FILE",
                    help="a model.pt written by polygeo train-drape (for --garment-file: one "
-                   "trained for that garment)")
+                   "trained for that garment; default: the shipped model of --garment)")
     p.add_argument("--garment", default="tshirt", metavar="NAME",
                    help=f"garment template, one of {', '.join(_GARMENTS)}; shipped models: tshirt, "
                    "dress (default tshirt)")
@@ -229,12 +231,13 @@ def register_drape(sub: argparse._SubParsersAction) -> None:
                    help=f"procedural motion, one of {', '.join(_MOTIONS)}; 30 fps (default walk)")
     p.add_argument("--motion-file", default=None, metavar="FILE",
                    help="motion .npz with 'rotations' (T, 104, 3) axis-angle in radians, "
-                   "'translation' (T, 3) in metres, optional 'fps'; replaces --motion")
+                   "'translation' (T, 3) in metres, optional 'fps' (default 30); replaces --motion "
+                   "(default: none)")
     p.add_argument("--frames", type=int, default=120, metavar="T",
                    help="number of frames, >= 1 (default 120, 4 s at 30 fps)")
     p.add_argument("--shape", default="", metavar="NAME=V,...",
                    help=f"body phenotypes in [0, 1], names among {', '.join(_PHENOTYPES)} (others "
-                   "0.5), e.g. \"age=0.66,gender=0.8\"")
+                   "0.5), e.g. \"age=0.66,gender=0.8\" (default: every phenotype 0.5)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random motion (default 0)")
     p.add_argument("--reference", action="store_true",
                    help="also run the physics reference solver on the same frames (slow: about "

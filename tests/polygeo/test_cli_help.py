@@ -13,8 +13,9 @@ import pytest
 
 from polygeo.cli import build_parser, main
 
-#: Commands whose help this test holds to the rule (the draping commands are their owners').
-COMMANDS = ("jets", "polyfit", "sft", "train-stn", "demo", "bench")
+#: Commands whose help this test holds to the rule: every registered one.
+COMMANDS = ("jets", "polyfit", "sft", "train-stn", "demo", "bench", "drape-reference", "drape",
+            "train-drape", "simulate", "train-fnopt")
 
 _FLAGS = (argparse._StoreTrueAction, argparse._StoreFalseAction, argparse._StoreConstAction,
           argparse._HelpAction, argparse._VersionAction)
@@ -90,6 +91,7 @@ def test_top_level_help_describes_every_registered_command(capsys):
     listed = capsys.readouterr().out
     names = {ep.name for ep in entry_points(group="polygeo.commands")}
     assert {"jets", "sft", "drape", "simulate"} <= names
+    assert names == set(COMMANDS)  # every command is also held to the option rule above
     for name in names:
         line = next(ln for ln in listed.splitlines() if ln.strip().startswith(name + " "))
         assert "plug-in" not in line, line  # a one-line description, not the module's name
