@@ -4,14 +4,16 @@ The objective is the energy of :func:`draping.reference.frame_energy` evaluated 
 kernels of :mod:`draping.physics.fused` (membrane, bending) plus closed forms for gravity,
 inertia and the collision penalty on fixed tangent planes. Three minimisers share it:
 
-- ``newton``: truncated Newton. The exact membrane Hessian (indefinite where the cloth is
-  compressed; ``Objective.project_membrane`` makes it positive semi-definite instead), the
+- ``newton``: truncated Newton. The membrane Hessian with the positive part of the stress
+  (``Objective.project_membrane``; the exact one, indefinite where the cloth is compressed,
+  without it), the
   Gauss-Newton bending Hessian (:mod:`draping.physics.fused`), collision Hessians
   ``6 k_c p n n^T``, friction and the mass term are assembled into a sparse matrix of 3x3
   blocks on a pattern built once; the Newton system is solved by conjugate gradients
   preconditioned with the factorised Laplacian below, to a relative residual
-  ``min(0.5, sqrt(|g| / |M g|))`` (inexact Newton), stopped at negative curvature (Steihaug:
-  the iterate so far, or the preconditioned gradient); backtracking line search.
+  ``min(0.5, sqrt(|g| / |M g|))`` (inexact Newton) or an iteration cap, stopped at negative
+  curvature (Steihaug: the iterate so far, or the preconditioned gradient); backtracking line
+  search.
 - ``pqn``: L-BFGS whose initial inverse Hessian is that factorised Laplacian (Liu et al. 2017).
 - ``lbfgs``: plain L-BFGS with the usual scaled identity.
 
@@ -37,7 +39,7 @@ class Structure(NamedTuple):
 
     faces: np.ndarray  # (F, 3) int64
     dm_inv: np.ndarray  # (F, 2, 2)
-    area: np.ndarray  # (F,) m^2
+    area: np.ndarray  # (F,) m^2, times the face's stiffness multiplier (membrane weight)
     quads: np.ndarray  # (H, 4) int64
     weight: np.ndarray  # (H,)
     mass: np.ndarray  # (V,) kg
@@ -74,7 +76,7 @@ def structure(rest: RestState) -> Structure:
     return Structure(
         f,
         rest.dm_inv.detach().double().numpy(),
-        rest.area.detach().double().numpy(),
+        _stiffness_area(rest),
         quads,
         rest.hinge_weight.detach().double().numpy(),
         rest.mass.detach().double().numpy(),
@@ -87,6 +89,14 @@ def structure(rest: RestState) -> Structure:
         hinge_map,
         diag_map,
     )
+
+
+def _stiffness_area(rest: RestState) -> np.ndarray:
+    """Rest areas (m^2) times ``rest.face_stiffness``: the membrane weight of each face."""
+    area = rest.area.detach().double().numpy()
+    if rest.face_stiffness is None:
+        return area
+    return area * rest.face_stiffness.detach().double().numpy()
 
 
 class Objective(NamedTuple):
@@ -326,8 +336,12 @@ def newton(
     max_iter: int,
     precond: Callable[[np.ndarray], np.ndarray],
     weight: float,
+    cg_max_iter: int = 200,
 ) -> Outcome:
-    """Projected Newton with PCG inner solves (module docstring); stops at ``|g| <= tol_abs``."""
+    """Truncated Newton with PCG inner solves (module docstring); stops at ``|g| <= tol_abs``.
+
+    Each inner solve stops at its forcing term or after ``cg_max_iter`` CG iterations.
+    """
     trace = []
     e, g, h = evaluate(ob, x, want_hess=True)
     it = 0
@@ -338,7 +352,7 @@ def newton(
         if gn <= tol_abs:
             break
         forcing = min(0.5, np.sqrt(gn / weight))
-        d = _pcg(h, -g.ravel(), lambda r: (precond(r) * fm).ravel(), forcing, 200)
+        d = _pcg(h, -g.ravel(), lambda r: (precond(r) * fm).ravel(), forcing, cg_max_iter)
         d = d.reshape(n, 3) * fm
         ls = _line_search(ob, x, e, g, d)
         if ls is None:  # CG direction failed: fall back to the preconditioned gradient

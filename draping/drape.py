@@ -313,6 +313,7 @@ def prepare(job: DrapeJob, body: AnnyBody | None = None, garment: Garment | None
     """
     from . import motion as mo
     from . import physics
+    from .garments import face_stiffness
     from .skinning import dense_body_weights, skinning_weights
 
     body = AnnyBody.load(dtype=torch.float64) if body is None else body
@@ -329,7 +330,9 @@ def prepare(job: DrapeJob, body: AnnyBody | None = None, garment: Garment | None
     w = np.asarray(skinning_weights(job.skinning, g.vertices, rv, wb, garment_faces=g.faces))
     verts = posed.vertices.double()
     return DrapeScene(
-        job=job, garment=g, rest=physics.rest_state(g.vertices, g.faces), weights=w,
+        job=job, garment=g, rest=physics.rest_state(g.vertices, g.faces,
+                                                    face_stiffness=face_stiffness(g)),
+        weights=w,
         body_faces=body.faces.numpy(), body_vertices=verts,
         skinned=skin_garment(g.vertices, w, posed.transforms),
         proxy_faces=body.proxy_faces.numpy(), proxy_vertices=body.proxy_vertices(verts),

@@ -173,18 +173,21 @@ def mean_operators(f: np.ndarray, n: int) -> tuple[sp.csr_matrix, np.ndarray]:
     return sp.csr_matrix(sp.diags(1.0 / np.maximum(deg, 1.0)) @ rows), rim
 
 
-def room(v: np.ndarray, query, clearance: float) -> np.ndarray:
+def room(v: np.ndarray, query, clearance) -> np.ndarray:
     """Per-vertex clearance: ``clearance`` where there is room, less in the body's hollows.
+
+    ``clearance`` is one distance or one per vertex ``(V,)`` (a snug waistband).
 
     A probe ``clearance`` off the skin at the closest body point is nearer than that to
     another part of the body where the gap across (armpit, crotch) is under twice the
     clearance; the gap is then about ``distance + clearance`` and a vertex keeps to 40 % of
     it, so that the garment's two sides of the hollow stay apart.
     """
+    c = np.broadcast_to(np.asarray(clearance, dtype=np.float64), (len(v),))
     _, closest, normal = query(v)
-    probe = np.abs(query(closest + clearance * normal)[0])
-    gap = probe + clearance
-    return np.clip(0.4 * gap, 0.1 * clearance, clearance)
+    probe = np.abs(query(closest + c[:, None] * normal)[0])
+    gap = probe + c
+    return np.clip(0.4 * gap, 0.1 * c, c)
 
 
 def project_out(v: np.ndarray, query, room: np.ndarray) -> np.ndarray:
@@ -209,9 +212,11 @@ def project_out(v: np.ndarray, query, room: np.ndarray) -> np.ndarray:
     return v
 
 
-def fit_to_body(v: np.ndarray, f: np.ndarray, query, clearance: float,
+def fit_to_body(v: np.ndarray, f: np.ndarray, query, clearance,
                 iterations: int) -> np.ndarray:
     """Laplacian smoothing alternating with projection to the clearance off the body.
+
+    ``clearance`` is one distance or one per vertex ``(V,)``.
 
     Where the garment then crosses itself (two sides of a hollow), the vertices around the
     crossing get half the room and the rounds go on, at most eight times.
@@ -231,7 +236,8 @@ def fit_to_body(v: np.ndarray, f: np.ndarray, query, clearance: float,
         near[f[pairs.ravel()].ravel()] = True
         for _ in range(2):  # and their neighbours, twice removed
             near |= (adj @ near.astype(float)) > 0
-        space[near] = np.maximum(0.5 * space[near], 0.05 * clearance)
+        floor = 0.05 * np.broadcast_to(np.asarray(clearance, dtype=np.float64), (len(v),))
+        space[near] = np.maximum(0.5 * space[near], floor[near])
     return v
 
 

@@ -20,12 +20,12 @@ penalty's at the last query. A dynamic frame starts from ``x0`` (default the fre
 Solvers (``SolverSettings.method``, implemented in ``draping._minimize`` on the fused kernels
 of :mod:`draping.physics.fused`):
 
-- ``"newton"`` (default): truncated Newton; element Hessians (the exact membrane Hessian by
-  default, ``SolverSettings.hessian``) assembled into a sparse block matrix, each Newton
+- ``"newton"`` (default): truncated Newton; positive semi-definite element Hessians
+  (``SolverSettings.hessian``) assembled into a sparse block matrix, each Newton
   system solved by conjugate gradients preconditioned with a sparse factorisation of
   ``M / dt^2 + K`` (``K`` a stiffness-weighted graph Laplacian shared by x, y and z, plus the
-  contact stiffness on its diagonal, factorised at each body query), stopped at negative
-  curvature; backtracking line search;
+  contact stiffness on its diagonal, factorised at each body query), capped at
+  ``cg_max_iter`` iterations, stopped at negative curvature; backtracking line search;
 - ``"pqn"``: L-BFGS whose initial inverse Hessian is that factorisation (Liu, Bouaziz, Kavan
   2017, "Quasi-Newton methods for real-time simulation of hyperelastic materials");
 - ``"lbfgs"``: plain L-BFGS.
@@ -144,16 +144,24 @@ class SolverSettings:
     static_dt : float
         Pseudo time step (s) of the preconditioner's mass term in static drapes (keeps it
         definite; does not change the minimised energy).
-    hessian : {"exact", "projected"}
-        Membrane Hessian of ``"newton"``: ``"exact"`` (default; indefinite where the cloth is
-        compressed, conjugate gradients stop at negative curvature) or ``"projected"``
-        (positive part of the stress: positive semi-definite). Replaying T-shirt walk frames
-        3, 8, 11 and 55 (the slowest of the walk; one thread, load 3-6): 17 / 50 / 61 / 78
-        Newton iterations and 6.6 CPU s together with ``"projected"``, 20 / 30 / 39 / 49 and
-        4.9 s with ``"exact"`` (same energies to 3e-5 J, drapes 0.03-0.09 mm apart on
-        average): where a wrinkle forms, the projected Hessian has no negative stiffness
-        along it and Newton crawls. Over the 60 walk frames the gain is smaller (2,049 against
-        1,940 Newton iterations).
+    hessian : {"projected", "exact"}
+        Membrane Hessian of ``"newton"``: ``"projected"`` (default; positive part of the
+        stress: positive semi-definite) or ``"exact"`` (indefinite where the cloth is
+        compressed; conjugate gradients stop at negative curvature). Measured on the
+        5,000-vertex garments of the walk (one thread, load 3-6): the exact one took the
+        T-shirt's 60 frames in 1,940 Newton iterations against 2,049, the dress's in 2,254
+        against 2,060; on the four slowest T-shirt / dress frames, with ``cg_max_iter`` 20,
+        3.9 / 4.8 CPU s against 5.9 / 3.4 for the projected one: no clear winner, so the
+        default stays the Hessian the shipped reference drapes were made with.
+    cg_max_iter : int
+        Cap of conjugate-gradient iterations per Newton step (``"newton"``). Where the cloth
+        buckles, long inner solves buy little: on the four slowest walk frames of the T-shirt
+        (3, 8, 11, 55) and of the dress (13, 19, 25, 27), 7.3 / 4.5 CPU s with 200 (the
+        default), 5.9 / 3.4 with 20 (drapes 0.001-0.002 mm apart on average; one thread, load
+        about 4), 7.7 / - with 40, slower again with 10. But a small cap starves tight
+        tolerances: with 20, a dynamic frame of a sheet on a sphere at ``tol = 1e-4`` did not
+        converge in 300 iterations (and doubling the cap whenever ``|g|`` stalled undid the
+        gain at ``1e-2``), so 20 is an opt-in for the default tolerance only.
     """
 
     method: str = "newton"
@@ -169,7 +177,8 @@ class SolverSettings:
     bending: bool = True
     gravity: tuple[float, float, float] = physics.GRAVITY
     static_dt: float = 0.05
-    hessian: str = "exact"
+    hessian: str = "projected"
+    cg_max_iter: int = 200
 
     def __post_init__(self) -> None:
         check_choice(self.method, "method", ("newton", "pqn", "lbfgs"))
@@ -179,7 +188,7 @@ class SolverSettings:
         check_positive(self.friction_eps, "friction_eps")
         for name in ("collision_stiffness", "collision_eps", "friction"):
             check_positive(getattr(self, name), name, strict=False)
-        for name in ("max_iter", "history", "requery_every"):
+        for name in ("max_iter", "history", "requery_every", "cg_max_iter"):
             check_int(getattr(self, name), name, low=1)
         check_int(self.max_requery, "max_requery", low=0)
         g = np.asarray(self.gravity, dtype=np.float64)
@@ -496,7 +505,7 @@ def _solve(x0: torch.Tensor, pb: _Problem) -> tuple[torch.Tensor, float, float, 
         last = pb.query is None or rounds >= st.max_requery
         chunk = st.max_iter - done if last else min(st.requery_every, st.max_iter - done)
         if st.method == "newton":
-            out = _minimize.newton(ob, x, tol_abs, chunk, precond, pb.weight)
+            out = _minimize.newton(ob, x, tol_abs, chunk, precond, pb.weight, st.cg_max_iter)
         else:
             out = _minimize.quasi_newton(ob, x, tol_abs, chunk, st.history, precond)
         x, done = out.x, done + out.iterations

@@ -89,7 +89,7 @@ def stvk_energy(
     """St. Venant-Kirchhoff membrane energy, thesis eq. (14)-(16).
 
     ``sum_faces h A (mu |E|_F^2 + lambda/2 tr(E)^2)`` with the rest area ``A`` and thickness
-    ``h``.
+    ``h`` (times ``rest.face_stiffness`` per face when it is set).
 
     Parameters
     ----------
@@ -118,7 +118,10 @@ def stvk_energy(
     e = green_strain(x, rest)
     tr = e[..., 0, 0] + e[..., 1, 1]
     psi = m.lame_mu * (e * e).sum((-1, -2)) + 0.5 * m.lame_lambda * tr * tr  # Pa
-    return reduce_terms(m.thickness * like(rest.area, x) * psi, reduction)
+    w = like(rest.area, x)
+    if rest.face_stiffness is not None:
+        w = w * like(rest.face_stiffness, x)
+    return reduce_terms(m.thickness * w * psi, reduction)
 
 
 # ---------------------------------------------------------------------- bending

@@ -131,6 +131,9 @@ class RestState:
         Singular values of the rest 1-ring covariances (m^2), for eq. (44).
     material : Material
         The material the masses were computed with.
+    face_stiffness : (F,) float or None
+        Multiplier of the membrane stiffness per triangle (dimensionless; None: 1 everywhere),
+        e.g. a stiff waistband on a stretchy skirt (:data:`draping.garments.SPECS`).
     """
 
     vertices: torch.Tensor
@@ -146,6 +149,7 @@ class RestState:
     ring_mask: torch.Tensor
     ring_sigma: torch.Tensor
     material: Material
+    face_stiffness: torch.Tensor | None = None
 
     @property
     def n_vertices(self) -> int:
@@ -178,7 +182,8 @@ def _local_dm(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return dm, area
 
 
-def rest_state(vertices: Any, faces: Any, material: Material | None = None) -> RestState:
+def rest_state(vertices: Any, faces: Any, material: Material | None = None,
+               face_stiffness: Any = None) -> RestState:
     """Precompute the rest geometry of a garment template.
 
     Parameters
@@ -189,6 +194,9 @@ def rest_state(vertices: Any, faces: Any, material: Material | None = None) -> R
         Consistently wound, non-degenerate triangles.
     material : Material, optional
         The cloth (default :class:`Material`), used for the lumped masses.
+    face_stiffness : (F,) float, optional
+        Multiplier (> 0, dimensionless) of the membrane stiffness of each triangle; None for
+        a uniform cloth. Masses do not change.
 
     Returns
     -------
@@ -198,7 +206,8 @@ def rest_state(vertices: Any, faces: Any, material: Material | None = None) -> R
     Raises
     ------
     ValueError
-        Bad shapes, out-of-range indices, non-finite vertices or a degenerate face.
+        Bad shapes, out-of-range indices, non-finite vertices, a degenerate face or a
+        ``face_stiffness`` of the wrong length or not finite and positive.
     TypeError
         Non-numeric vertices, non-integer faces or a bad material.
     """
@@ -214,6 +223,12 @@ def rest_state(vertices: Any, faces: Any, material: Material | None = None) -> R
     f = check_faces(faces, n).cpu().numpy()
     e_idx = mesh.edges(f)
     dm, area = _local_dm(v, f)
+    fs = None
+    if face_stiffness is not None:
+        fs = np.asarray(face_stiffness, dtype=np.float64)
+        if fs.shape != (f.shape[0],) or not (np.isfinite(fs).all() and (fs > 0).all()):
+            raise ValueError(f"face_stiffness: expected {f.shape[0]} finite values > 0, got "
+                             f"shape {fs.shape}")
     mass = np.zeros(n)
     np.add.at(mass, f.reshape(-1), np.repeat(area / 3.0, 3))
     mass *= material.area_density
@@ -245,4 +260,5 @@ def rest_state(vertices: Any, faces: Any, material: Material | None = None) -> R
         ring_mask=rmask,
         ring_sigma=sigma.to(dtype),
         material=material,
+        face_stiffness=None if fs is None else t(fs),
     )
