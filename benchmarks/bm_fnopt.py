@@ -9,7 +9,8 @@ cached in benchmarks/results/fnopt_refs/):
 - ``lbfgs``: the equal-error comparison (mean e_3D) of L-BFGS variants against FNOpt N = 10;
 - ``reference``: the convergence of the reference over its tolerance;
 - ``super``: FNOpt run at 64 against the 32 rollout upsampled bilinearly to 64 (Table 6.4);
-- ``general``: speed factors 1.2 / 1.5 / 2 and the five handle layouts at 32 (Figures 6.6-6.7);
+- ``general``: speed factors 1.2 / 1.5 / 2, the five handle layouts and seeded random pin sets
+  at ``--res`` (Figures 6.6-6.7);
 - ``sweep``: the width/modes sweep (from benchmarks/fnopt_sweep.py's JSON), charted.
 
 All timings are CPU times of one thread on a shared, busy 2-core machine: ``cpu_ms_per_frame``
