@@ -528,7 +528,7 @@ def strip(args, ev_: Evaluator, res: dict, cache: Path, path: Path) -> None:
     for r in res[g]["models"]:
         if r.get("not_equal_budget"):
             continue
-        d = ev_.drape(load_model(r["model"]), case)
+        d = ev_.drape(load_model(Path(r["model"]).expanduser()), case)  # recorded as ~/...
         body_v = d.body_vertices[-1].numpy()
         meshes.append((body_v, ev_.body.faces.numpy(), d.x[-1].numpy()))
         titles.append(r["label"])
