@@ -115,9 +115,10 @@ class TrainSettings:
     A step draws one body shape from a pool of ``shapes`` random phenotype vectors (seeded;
     each with the garment carried over to it by :func:`draping.garments.fit_garment_to_shape`,
     whose rest geometry is the strain reference), ``batch`` windows of ``window`` consecutive
-    frames from the training motions, runs the GRU over each window from a random hidden
-    state, skins, and minimises eq. (46) summed over the frames (inertia, eq. (42), on the
-    frames that have two predecessors in the window).
+    frames from the training motions, runs the GRU over each window from the state it has
+    there at inference (``burn_in``; a random hidden state with ``burn_in = 0``), skins, and
+    minimises eq. (46) summed over the frames (inertia, eq. (42), on the frames that have two
+    predecessors in the window), the gradient clipped (``grad_clip``).
 
     Attributes
     ----------

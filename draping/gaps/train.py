@@ -3,9 +3,10 @@
 Part of :mod:`draping.gaps`; import from there.
 
 A step (see :class:`draping.gaps.TrainSettings`): one training body shape, ``batch`` windows
-of ``window`` frames from the training motions, random initial hidden states, eq. (46) on
-every frame. Seeded per step (``numpy`` and ``torch`` generators keyed by ``(seed, step)``), so
-a run resumed from its checkpoint continues exactly as the uninterrupted run would.
+of ``window`` frames from the training motions, each started from the GRU state of the
+motion read up to it (``burn_in``), eq. (46) on every frame, the gradient norm clipped.
+Seeded per step (``numpy`` and ``torch`` generators keyed by ``(seed, step)``), so a run
+resumed from its checkpoint continues exactly as the uninterrupted run would.
 """
 
 from __future__ import annotations
