@@ -100,3 +100,21 @@ def test_shipped_skirt_stays_on_the_hips_while_walking():
         drop = float(scene.skinned[fr.frame].numpy()[ring, 2].mean() - fr.x.numpy()[ring, 2].mean())
         assert drop < bound, (fr.frame, drop, bound)
         assert fr.row["eps_c"] <= 0.5
+
+
+@pytest.mark.parametrize("name", ["skirt", "pants"])
+def test_shipped_waistbands_are_stiff_rings_at_the_top(name):
+    from draping.garment_fit import boundary_loops
+    from draping.garments import WAISTBAND_HEIGHT, garment
+
+    g = garment(name)
+    k = face_stiffness(g)
+    assert k is not None and k.max() > 1.0
+    band = k > 1.0
+    ring = max(boundary_loops(g.faces), key=lambda lp: g.vertices[lp, 2].mean())
+    z_low = g.vertices[ring, 2].min() - WAISTBAND_HEIGHT * g.info["hip_to_neck"]
+    assert (g.vertices[g.faces[band], 2].min(1) >= z_low).all()
+    # the band goes all the way round: every waist-ring vertex is on a stiff face
+    on_band = np.zeros(len(g.vertices), bool)
+    on_band[g.faces[band].ravel()] = True
+    assert on_band[ring].all()
