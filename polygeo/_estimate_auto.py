@@ -32,7 +32,6 @@ from a fit at that setting (the curvatures' sign and principal directions follow
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import replace
 
 import numpy as np
@@ -49,7 +48,8 @@ from ._estimate_stages import (
     fit_fused,
 )
 
-__all__ = ["fit_auto", "point_statistics", "point_mse", "choose", "best_setting", "merge_normals"]
+__all__ = ["fit_auto", "point_statistics", "point_mse", "store_mse", "choose", "best_setting",
+           "merge_normals"]
 
 #: Next-best settings tried where the fused fit flags the chosen one.
 _RETRIES = 3
@@ -167,13 +167,42 @@ def point_statistics(hoods: Neighbourhoods, q, nbr, dist, *, orders, sizes,
 
 
 def _pooled_median(a: np.ndarray, pool: np.ndarray) -> np.ndarray:
-    """Median of ``a[pool]`` over the pool axis (``-1`` padding and NaN ignored)."""
+    """Median of ``a[pool]`` over the pool axis (``-1`` padding and NaN ignored; NaN if none).
+
+    Sorted along the pool (NaN last) and the middle of the valid values taken: the same values
+    as ``np.nanmedian``, many times faster on these small pools.
+    """
     x = a[np.maximum(pool, 0)]
     pad = (pool < 0).reshape(pool.shape + (1,) * (x.ndim - 2))
-    x = np.where(pad, np.nan, x)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN slices: no pooled value
-        return np.nanmedian(x, axis=1)
+    x = np.sort(np.moveaxis(np.where(pad, np.nan, x), 1, -1), axis=-1)
+    n = (~np.isnan(x)).sum(-1)
+    lo = np.take_along_axis(x, np.maximum((n - 1) // 2, 0)[..., None], -1)[..., 0]
+    hi = np.take_along_axis(x, np.maximum(n // 2, 0)[..., None], -1)[..., 0]
+    with np.errstate(invalid="ignore"):
+        med = 0.5 * (lo + hi)
+    return np.where(n > 0, med, np.nan)
+
+
+def _pooled_median_t(at: np.ndarray, pool: np.ndarray) -> np.ndarray:
+    """:func:`_pooled_median` of ``at (F, N)`` (points last): ``(F, Q)``.
+
+    The pool axis comes out last and contiguous: no transposed copy of the gathered values.
+    """
+    x = at[:, np.maximum(pool, 0)]  # (F, Q, P)
+    if (pool < 0).any():
+        x[:, pool < 0] = np.nan
+    x.sort(axis=-1)  # NaN last
+    n = x.shape[-1] - np.isnan(x).sum(-1)
+    lo = np.take_along_axis(x, np.maximum((n - 1) // 2, 0)[..., None], -1)[..., 0]
+    hi = np.take_along_axis(x, np.maximum(n // 2, 0)[..., None], -1)[..., 0]
+    with np.errstate(invalid="ignore"):
+        med = 0.5 * (lo + hi)
+    return np.where(n > 0, med, np.nan)
+
+
+def store_mse(table: np.ndarray, rows: np.ndarray, mse: np.ndarray) -> None:
+    """Write :func:`point_mse` of ``rows`` into ``table (O, S, 2, N)`` (``inf`` as NaN)."""
+    table[..., rows] = np.moveaxis(np.where(np.isfinite(mse), mse, np.nan), 0, -1)
 
 
 def point_mse(stats: dict, rows: np.ndarray, pool: np.ndarray, sizes: np.ndarray,
@@ -196,19 +225,21 @@ def point_mse(stats: dict, rows: np.ndarray, pool: np.ndarray, sizes: np.ndarray
     return mse
 
 
-def choose(stats: dict, mse: np.ndarray, pool: np.ndarray, sizes: np.ndarray,
+def choose(stats: dict, table: np.ndarray, pool: np.ndarray, sizes: np.ndarray,
            orders: tuple[int, ...]) -> dict:
     """Per query, the pooled errors of every setting for the normal and for the curvatures.
 
-    ``mse (N, O, S, 2)`` of every point (:func:`point_mse`), pooled (median) over ``pool
+    ``table (O, S, 2, N)``: :func:`point_mse` of every point (:func:`store_mse`; NaN where not
+    defined), pooled (median) over ``pool
     (Q, P)`` (the query first; ``-1`` padding ignored); per order the sizes above the pooled
     (geometric median) ICI size, those the query itself cannot fit and, for the curvatures,
     order 1 (when a higher order is tried) get ``inf``. Returns
     ``normal`` and ``curvature``, each ``(Q, O * S)`` (order-major; :func:`best_setting`).
     """
     Q = pool.shape[0]
-    O, S = mse.shape[1], mse.shape[2]
-    m = _pooled_median(np.where(np.isfinite(mse), mse, np.nan), pool)
+    O, S = table.shape[0], table.shape[1]
+    m = _pooled_median_t(table.reshape(O * S * 2, -1), pool)  # (O * S * 2, Q)
+    m = np.moveaxis(m.reshape(O, S, 2, Q), -1, 0)
     m = np.where(np.isnan(m), np.inf, m)
     logs = np.log(sizes.astype(np.float64))
     cap = np.exp(_pooled_median(logs[stats["size"]], pool))  # (Q, O)
@@ -302,12 +333,12 @@ def fit_auto(hoods: Neighbourhoods, out: Quantities, *, settings: Settings) -> N
         pools[q, : min(n_pool, nbr.shape[1])] = nbr[:, :n_pool]
     if stats is None:
         return
-    mse = np.full(stats["var"].shape, np.inf, dtype=np.float32)
+    table = np.full(stats["var"].shape[1:] + (n,), np.nan, dtype=np.float32)
     for q in hoods.chunks(settings.batch_size, False):
-        mse[q] = point_mse(stats, q, pools[q], sizes, orders)
+        store_mse(table, q, point_mse(stats, q, pools[q], sizes, orders))
     for q in hoods.chunks(settings.batch_size, settings.progress):
         nbr, dist = hoods.query(q)
-        score = choose(stats, mse, pools[q], sizes, orders)
+        score = choose(stats, table, pools[q], sizes, orders)
         on, kn = best_setting(score["normal"], sizes)
         oc, kc = best_setting(score["curvature"], sizes)
         other = (on != oc) | (kn != kc)

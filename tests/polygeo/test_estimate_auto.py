@@ -111,3 +111,26 @@ def test_auto_on_a_surface_family_outside_the_benchmark_grid(noise):
     floor_n, floor_h = 1e-5, 1e-8
     assert max(n_auto, floor_n) < 1.5 * max(n_best, floor_n)
     assert max(h_auto, floor_h) < 1.5 * max(h_best, floor_h)
+
+
+def test_pooled_median_equals_nanmedian():
+    """The sorted-pool median of the choice equals NumPy's nanmedian (NaN, inf, padding)."""
+    import warnings
+
+    from polygeo._estimate_auto import _pooled_median
+
+    rng = np.random.default_rng(47)
+    a = rng.normal(size=(500, 4, 12, 2))
+    a[rng.random(a.shape) < 0.3] = np.nan
+    a[rng.random(a.shape) < 0.1] = np.inf
+    pool = rng.integers(-1, 500, size=(300, 24))
+    pool[:, 0] = np.arange(300)
+    pool[5, 1:] = -1  # a pool of one
+    a[pool[7]] = np.nan  # a pool with nothing valid
+    x = np.where((pool < 0)[:, :, None, None, None], np.nan, a[np.maximum(pool, 0)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        ref = np.nanmedian(x, axis=1)
+    got = _pooled_median(a, pool)
+    assert np.isnan(got[7]).all()
+    np.testing.assert_array_equal(got, ref)

@@ -11,6 +11,7 @@ from polygeo._estimate_auto import (
     choose,
     point_mse,
     point_statistics,
+    store_mse,
 )
 from polygeo._estimate_numba import Quantities
 from polygeo._estimate_stages import (
@@ -76,9 +77,13 @@ def auto_sizes(hoods, q, nbr, dist, s):
     """The live ``k="auto"`` choice on one chunk: (order index, rows) for the curvatures."""
     orders, sizes = auto_orders(s), candidate_sizes(hoods, s)
     stats = point_statistics(hoods, q, nbr, dist, orders=orders, sizes=sizes, settings=s)
-    pool = nbr[:, :24]  # one chunk holding every point: rows of stats are point indices
-    mse = point_mse(stats, q, pool, sizes, orders)
-    return best_setting(choose(stats, mse, pool, sizes, orders)["curvature"], sizes)
+    full = {k: np.zeros((len(hoods.P),) + v.shape[1:], v.dtype) for k, v in stats.items()}
+    for k, v in stats.items():
+        full[k][q] = v  # rows of the statistics: point indices (the chunk is in grid order)
+    pool = nbr[:, :24]
+    table = np.full(stats["var"].shape[1:] + (len(hoods.P),), np.nan, dtype=np.float32)
+    store_mse(table, q, point_mse(full, q, pool, sizes, orders))
+    return best_setting(choose(full, table, pool, sizes, orders)["curvature"], sizes)
 
 
 @pytest.mark.parametrize("parallel_min", [1, 10**9])
