@@ -61,7 +61,9 @@ RANDOM_LAYOUTS = {
 #: baseline is PyTorch's L-BFGS with a strong-Wolfe line search (``solve_lbfgs_wolfe``).
 LBFGS_VARIANTS = (("lbfgs m10 strong-Wolfe", "lbfgs-wolfe", {"history": 10}),
                   ("lbfgs m20 strong-Wolfe", "lbfgs-wolfe", {"history": 20}),
-                  ("lbfgs m5 step 1", "lbfgs", {"history": 5}))
+                  ("lbfgs m5 step 1", "lbfgs", {"history": 5}),
+                  ("lbfgs m10 strong-Wolfe float64", "lbfgs-wolfe",
+                   {"history": 10, "float64": True}))
 
 #: "Equal error": the metric compared (mean over the rollout's measured frames). e_3D, not
 #: e_CD: e_CD x 1e3 with 10k samples has a sampling floor of about 0.13 that every converged
@@ -194,6 +196,9 @@ def part_lbfgs(args, net) -> dict:
     counts = [tuple(int(n) for n in part.split(",")) for part in args.lbfgs_iters.split(";")]
     plan = [("fnopt", "fnopt N", {}, (10,))] + \
         [(name, lab, kw, its) for (lab, name, kw), its in zip(LBFGS_VARIANTS, counts)]
+    if args.variants:
+        keep = {LBFGS_VARIANTS[int(i)][0] for i in args.variants.split(",")}
+        plan = plan[:1] + [q for q in plan[1:] if q[1] in keep]
     fn = None
     for name, lab, kw, its in plan:
         for n in its:
@@ -206,7 +211,7 @@ def part_lbfgs(args, net) -> dict:
             elif "e_3d" in r and r[EQUAL_ERROR_METRIC] <= fn[EQUAL_ERROR_METRIC]:
                 break                   # reached: more iterations only cost time
     rec["equal_error"] = []
-    for lab, _, _ in LBFGS_VARIANTS:
+    for lab in [q[1] for q in plan[1:]]:
         rs = [r for r in rec["runs"] if r.get("variant") == lab and "e_cd" in r]
         hit = next((r for r in rs if r[EQUAL_ERROR_METRIC] <= fn[EQUAL_ERROR_METRIC]), None)
         rec["equal_error"].append({
@@ -304,9 +309,12 @@ def main() -> None:
                     help="general part: optimiser:iterations, comma-separated")
     ap.add_argument("--tag", default="", help="suffix of the output names")
     ap.add_argument("--lbfgs-iters", default="20,50,100,150,200,300;20,50,100,150,200,300;"
-                    "100,200,300", help="lbfgs part: iteration counts per variant (';' between "
-                    "variants); each variant stops at the first count reaching FNOpt's error")
+                    "100,200,300;50,100,150,200,300",
+                    help="lbfgs part: iteration counts per variant (';' between variants); each "
+                    "variant stops at the first count reaching FNOpt's error")
     ap.add_argument("--layout", default="corners", help="lbfgs part: handle layout")
+    ap.add_argument("--variants", default="", help="lbfgs part: comma-separated indices of "
+                    "LBFGS_VARIANTS to run (default all)")
     ap.add_argument("--tols", default="5e-3,5e-4,5e-5,5e-6",
                     help="reference part: tolerances (m/s^2), loosest first")
     ap.add_argument("--layouts", default="corners,diagonal,mid-edges,corner-centre,single",

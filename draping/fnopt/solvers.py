@@ -371,8 +371,15 @@ def solve_lbfgs(p: StepProblem, iters: int, history: int = 5, step: float = 1.0,
     return p.compose(a)
 
 
+def _as_float64(p: StepProblem) -> StepProblem:
+    return StepProblem(p.x_prev.double(), p.v_prev.double(), p.hx.double(), p.hy.double(),
+                       {k: v.double() for k, v in p.material.items()}, p.dt, p.free.double(),
+                       p.a_fixed.double(), p.mass.double(), p.extra)
+
+
 def solve_lbfgs_wolfe(p: StepProblem, iters: int, history: int = 10, a0=None,
-                      max_eval: int | None = None, info: dict | None = None) -> torch.Tensor:
+                      max_eval: int | None = None, info: dict | None = None,
+                      float64: bool = False) -> torch.Tensor:
     """L-BFGS with a strong-Wolfe line search (``torch.optim.LBFGS``), the fair baseline.
 
     PyTorch's own implementation (two-loop recursion, cubic-interpolation strong-Wolfe line
@@ -380,8 +387,15 @@ def solve_lbfgs_wolfe(p: StepProblem, iters: int, history: int = 10, a0=None,
     ``b = sqrt(m) dt a`` (the same diagonal scaling as :func:`solve_lbfgs`; the identity is then
     the inertia term's Hessian). ``iters``: L-BFGS iterations; ``max_eval``: gradient
     evaluations allowed in all (default ``2 * iters``, the line search's extra ones included);
-    ``info`` receives ``evaluations`` and ``residual`` (RMS, m/s^2).
+    ``info`` receives ``evaluations`` and ``residual`` (RMS, m/s^2). ``float64``: solve in
+    float64 (in float32 the line search stops once the decrease is below the loss' rounding).
     """
+    if float64 and p.x_prev.dtype != torch.float64:
+        p64 = _as_float64(p)
+        a0 = None if a0 is None else a0.double()
+        out = solve_lbfgs_wolfe(p64, iters, history, a0, max_eval, info)
+        p.evals += p64.evals
+        return out.to(p.x_prev.dtype)
     sq = p.mass[..., None].sqrt() * p.dt
     a = torch.zeros_like(p.x_prev) if a0 is None else (a0 * p.free).clone()
     b = (a * sq).detach().clone().requires_grad_(True)
@@ -415,9 +429,7 @@ def solve_reference(p: StepProblem, a0=None, tol: float = REFERENCE_TOL,
     dtype = p.x_prev.dtype
     info = {} if info is None else info
     if dtype != torch.float64:
-        p64 = StepProblem(p.x_prev.double(), p.v_prev.double(), p.hx.double(), p.hy.double(),
-                          {k: v.double() for k, v in p.material.items()}, p.dt,
-                          p.free.double(), p.a_fixed.double(), p.mass.double(), p.extra)
+        p64 = _as_float64(p)
         a0 = None if a0 is None else a0.double()
         out = solve_lbfgs(p64, max_iter, history=20, a0=a0, line_search=True, tol=tol,
                           info=info, precondition=precondition).to(dtype)

@@ -58,15 +58,15 @@ def test_reference_rollout_converged_in_the_tolerance(tmp_path):
     assert torch.equal(again.positions, ref.positions)
 
 
-def _problem(res=10, layout="single"):
+def _problem(res=10, layout="single", dtype=torch.float64):
     sheet = Sheet(res, res)
     idx = cloth.handle_indices(layout, res, res)
-    x = cloth.rest_positions(sheet, dtype=torch.float64)[None]
+    x = cloth.rest_positions(sheet, dtype=dtype)[None]
     v = torch.zeros_like(x)
     v[..., 1] = 0.5                                   # moving out of plane
     target = x[:, idx[:, 0], idx[:, 1]] + torch.tensor([0.01, 0.0, 0.005], dtype=x.dtype)
     return solvers.make_problem(x, v, idx, target, sheet.hx, sheet.hy,
-                                Material().tensors(1, torch.float64))
+                                Material().tensors(1, dtype))
 
 
 def test_reference_warns_when_not_converged():
@@ -114,3 +114,14 @@ def test_batched_hessian_products_match_single_ones_and_finite_differences():
     s_batched = p.subspace_step(g, dirs, hvp)
     p.batched_hvp = False
     assert torch.allclose(p.subspace_step(g, dirs, hvp), s_batched, rtol=1e-9, atol=1e-12)
+
+
+def test_lbfgs_wolfe_in_float64_on_a_float32_problem():
+    p = _problem(dtype=torch.float32)
+    info = {}
+    a = solvers.solve_lbfgs_wolfe(p, 300, history=20, info=info, float64=True)
+    assert a.dtype == torch.float32
+    assert info["evaluations"] > 0 and p.evals >= info["evaluations"]
+    assert float(info["residual"][0]) < 1e-3
+    a_ref = solvers.solve_reference(_problem(), tol=1e-8)
+    assert torch.allclose(a.double(), a_ref, atol=1e-2)
