@@ -28,7 +28,8 @@ points, the sign differs from the winding number.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
 
 import numba as nb
 import numpy as np
@@ -36,7 +37,8 @@ import torch
 
 from polygeo.checks import as_tensor, check_faces, check_finite, check_shape
 
-__all__ = ["SignedDistance", "MeshQuery", "signed_distance", "winding_numbers"]
+__all__ = ["SignedDistance", "MeshQuery", "QueryFn", "signed_distance", "winding_numbers",
+           "sphere_query", "plane_query"]
 
 _LEAF = 4
 
@@ -338,7 +340,7 @@ class MeshQuery:
         self.pseudo = _pseudonormals(vn, self.faces, tri, self.neighbours)
 
     def __call__(self, points) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(distance (N,), normal (N, 3))`` of points: a ``draping.reference.QueryFn``.
+        """``(distance (N,), normal (N, 3))`` of points: a :data:`QueryFn`.
 
         So a posed body plugs into the reference solver as ``MeshQuery(vertices, faces)``.
         """
@@ -514,3 +516,87 @@ def winding_numbers(points, vertices, faces) -> torch.Tensor:
     out = np.empty(len(p))
     _winding(np.ascontiguousarray(p.detach().cpu().numpy()), tri, out)
     return torch.from_numpy(out)
+
+
+#: ``query(points (N, 3) float64 tensor) -> (distance (N,), normal (N, 3))``: signed distance to
+#: the body (m, positive outside) and outward unit normal at the closest body point; a
+#: ``draping.collision.SignedDistance`` answer (``MeshQuery.query``) is accepted too, its closest
+#: points then anchor the tangent planes, and infinite distances (beyond its ``max_distance``)
+#: mean no contact.
+QueryFn = Callable[[torch.Tensor], Any]
+
+
+# ---------------------------------------------------------------------- analytic bodies
+
+
+def sphere_query(center: Sequence[float], radius: float) -> QueryFn:
+    """Exact signed distance and normal of a sphere (a test and benchmark body).
+
+    Parameters
+    ----------
+    center : (3,) float
+        Centre (m).
+    radius : float
+        Radius (m), > 0.
+
+    Returns
+    -------
+    QueryFn
+        ``d = |x - c| - r``, ``n = (x - c) / |x - c|`` (``+z`` at the centre itself).
+
+    Raises
+    ------
+    ValueError
+        Bad centre or radius.
+    """
+    c = torch.as_tensor(center, dtype=torch.float64)
+    if c.shape != (3,) or not bool(torch.isfinite(c).all()):
+        raise ValueError(f"center: expected 3 finite values, got {center}")
+    if not (np.isfinite(radius) and radius > 0):
+        raise ValueError(f"radius: expected a finite value > 0, got {radius}")
+
+    def query(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        d = points.detach().to(torch.float64) - c
+        r = torch.linalg.norm(d, dim=-1)
+        safe = torch.where(r > 0, r, torch.ones_like(r))
+        n = torch.where(
+            (r > 0)[:, None], d / safe[:, None], torch.tensor([0.0, 0.0, 1.0], dtype=d.dtype)
+        )
+        return r - radius, n
+
+    return query
+
+
+def plane_query(point: Sequence[float], normal: Sequence[float]) -> QueryFn:
+    """Exact signed distance to a plane (a floor), positive on the side of ``normal``.
+
+    Parameters
+    ----------
+    point : (3,) float
+        A point of the plane (m).
+    normal : (3,) float
+        Its normal (normalised here).
+
+    Returns
+    -------
+    QueryFn
+
+    Raises
+    ------
+    ValueError
+        A zero or non-finite normal.
+    """
+    p = torch.as_tensor(point, dtype=torch.float64)
+    n = torch.as_tensor(normal, dtype=torch.float64)
+    nn = float(torch.linalg.norm(n)) if n.shape == (3,) else 0.0
+    if p.shape != (3,) or not np.isfinite(nn) or nn == 0:
+        raise ValueError(
+            f"point, normal: expected 3 values each and a non-zero normal, got {point}, {normal}"
+        )
+    n = n / nn
+
+    def query(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        d = (points.detach().to(torch.float64) - p) @ n
+        return d, n.expand(points.shape[0], 3)
+
+    return query
