@@ -287,6 +287,28 @@ def warm_up(data: Path) -> float:
     return time.perf_counter() - t0
 
 
+def resume_jobs(done: dict, jobs: list, frames: int) -> tuple[list[dict], list]:
+    """Split ``jobs`` into the finished runs of an earlier partial record and those left.
+
+    A run counts as finished when the partial record has the same frames per sequence and a
+    result with the same configuration label, sequence kind and settings (a configuration
+    whose settings changed since is run again). Returns ``(kept results, jobs to run)``.
+    """
+    if done.get("frames") != frames:
+        return [], list(jobs)
+    kept, left = [], []
+    for job in jobs:
+        label, _, st, kind = job
+        hit = [r for r in done.get("results", [])
+               if r.get("config") == label and r.get("kind") == kind
+               and r.get("settings") == json.loads(json.dumps(st))]
+        if hit:
+            kept.append(hit[-1])
+        else:
+            left.append(job)
+    return kept, left
+
+
 def _job(job: tuple) -> dict:
     label, fam, st, seq, kind, frames, threads = job
     _worker_setup(threads)
@@ -371,6 +393,13 @@ def main(argv: list[str] | None = None) -> int:
         help="summarise the runs in <out>/bm_sft.partial.json (interrupted benchmark); only "
         "the memory run runs",
     )
+    ap.add_argument(
+        "--resume",
+        action="store_true",
+        help="keep the runs already in <out>/bm_sft.partial.json (same frames, configuration, "
+        "settings and sequence) and run only the others (a full run is ~100 CPU minutes: it "
+        "can be finished over several sessions)",
+    )
     a = ap.parse_args(argv)
 
     _worker_setup(a.threads)
@@ -406,6 +435,9 @@ def main(argv: list[str] | None = None) -> int:
     jobs.sort(key=lambda j: -j[2]["max_iterations"] * j[2]["window"])
     partial = out / "bm_sft.partial.json"
     results, mem = [], None
+    if a.resume and partial.is_file():
+        results, jobs = resume_jobs(json.loads(partial.read_text()), jobs, frames)
+        print(f"bm_sft: --resume keeps {len(results)} finished runs, {len(jobs)} to run")
 
     def record(r):
         results.append(r)

@@ -1,0 +1,39 @@
+"""bm_sft --resume keeps exactly the finished runs whose frames, label, kind and settings match."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _bm():
+    spec = importlib.util.spec_from_file_location("bm_sft", ROOT / "benchmarks" / "bm_sft.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("bm_sft", mod)
+    spec.loader.exec_module(sys.modules["bm_sft"])
+    return sys.modules["bm_sft"]
+
+
+def test_resume_keeps_matching_runs_only():
+    bm = _bm()
+    jobs = [
+        ("polysft base", "polysft", {"order": 2, "window": 3}, "bend"),
+        ("polysft base", "polysft", {"order": 2, "window": 3}, "fold"),
+        ("vertex base", "vertex", {"lr": 0.01}, "bend"),
+    ]
+    done = json.loads(json.dumps({"frames": 8, "results": [
+        {"config": "polysft base", "kind": "bend", "settings": {"order": 2, "window": 3},
+         "e_3d": 1.0},
+        {"config": "vertex base", "kind": "bend", "settings": {"lr": 0.02}, "e_3d": 2.0},
+    ]}))
+    kept, left = bm.resume_jobs(done, jobs, 8)
+    assert [r["e_3d"] for r in kept] == [1.0]
+    # the other kind and the changed settings run again
+    assert left == jobs[1:]
+    # another number of frames: nothing is reused
+    kept, left = bm.resume_jobs(done, jobs, 6)
+    assert kept == [] and left == jobs
