@@ -19,6 +19,7 @@ Sub-modules (imported on first access, so that ``import polygeo`` stays cheap):
 ``canonical``   PCA canonical frames of patches, jet height residual, test-time refinement
 ``stn``         rigid spatial transformer refining patch orientations (network, weights)
 ``stn_train``   training of the STN (resumable, checkpointed)
+``stn_settings`` settings of the STN training (torch-free, for the command line)
 ``render``      differentiable soft rasterizer for CPU
 ``synthetic``   analytic surfaces and synthetic patch families
 """
@@ -48,6 +49,7 @@ _SUBMODULES = (
     "canonical",
     "stn",
     "stn_train",
+    "stn_settings",
     "render",
     "synthetic",
 )

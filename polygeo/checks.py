@@ -18,13 +18,16 @@ torch.int64
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
-from .types import Array, ArrayLike, DeviceLike
+if TYPE_CHECKING:  # torch is imported on first use: `polygeo <command> --help` stays torch-free
+    import torch
+
+    from .types import Array, ArrayLike, DeviceLike
 
 __all__ = [
     "as_tensor",
@@ -39,12 +42,16 @@ __all__ = [
     "is_numpy_like",
 ]
 
-_FLOAT_DTYPES = (torch.float16, torch.bfloat16, torch.float32, torch.float64)
+
+def _is_tensor(x: Any) -> bool:
+    # a torch tensor exists only once torch is imported: no import needed to answer
+    torch = sys.modules.get("torch")
+    return torch is not None and isinstance(x, torch.Tensor)
 
 
 def is_numpy_like(x: ArrayLike) -> bool:
     """Return True when ``x`` is not a torch tensor (NumPy array, list, scalar)."""
-    return not isinstance(x, torch.Tensor)
+    return not _is_tensor(x)
 
 
 def as_tensor(
@@ -81,6 +88,8 @@ def as_tensor(
     TypeError
         If ``x`` cannot be converted, is complex or boolean where floats are expected.
     """
+    import torch
+
     if isinstance(x, torch.Tensor):
         t = x
     else:
@@ -104,7 +113,7 @@ def as_tensor(
     if floating:
         if t.dtype == torch.bool:
             raise TypeError(f"{name}: expected floating-point values, got dtype bool")
-        if dtype is None and t.dtype not in _FLOAT_DTYPES:
+        if dtype is None and not t.is_floating_point():
             dtype = torch.float64
     if dtype is not None or device is not None:
         t = t.to(dtype=dtype or t.dtype, device=device or t.device)
@@ -160,6 +169,8 @@ def check_shape(t: Array, name: str, shape: Sequence[int | str | None]) -> None:
 
 def check_finite(t: torch.Tensor, name: str) -> None:
     """Raise ``ValueError`` if ``t`` holds NaN or infinite values (counting them)."""
+    import torch
+
     bad = ~torch.isfinite(t)
     if bool(bad.any()):
         raise ValueError(f"{name}: expected finite values, got {int(bad.sum())} NaN/inf entries")
@@ -189,6 +200,8 @@ def check_mask(mask: ArrayLike, name: str, shape: Sequence[int | str | None]) ->
     ValueError
         If its shape does not match.
     """
+    import torch
+
     m = as_tensor(mask, name, floating=False)
     if m.dtype != torch.bool:
         raise TypeError(f"{name}: expected a bool array, got dtype {m.dtype}")
@@ -211,7 +224,7 @@ def check_positive(value: float, name: str, *, strict: bool = True) -> float:
 def check_int(value: Any, name: str, *, low: int | None = None, high: int | None = None) -> int:
     """Check that ``value`` is an integer within ``[low, high]``; return it as int."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        if isinstance(value, torch.Tensor) and value.numel() == 1 and not value.is_floating_point():
+        if _is_tensor(value) and value.numel() == 1 and not value.is_floating_point():
             value = int(value)
         else:
             raise TypeError(f"{name}: expected an integer, got {type(value).__name__} {value!r}")
@@ -265,6 +278,8 @@ def check_faces(
         If the shape is not ``(F, 3)``, an index is negative or (with ``n_vertices``) is
         ``>= n_vertices``, or ``n_vertices`` is negative.
     """
+    import torch
+
     t = as_tensor(faces, name, floating=False)
     if t.is_floating_point() or t.dtype == torch.bool:
         raise TypeError(f"{name}: expected an integer array, got dtype {t.dtype}")

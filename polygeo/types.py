@@ -22,14 +22,16 @@ them at run time (the validators in :mod:`polygeo.checks` do).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, TypeAlias
+from typing import TYPE_CHECKING, Any, TypeAlias
 
 import numpy as np
-import torch
+
+if TYPE_CHECKING:  # the aliases are for readers and type checkers: no torch import at run time
+    import torch
 
 __all__ = ["ArrayLike", "Array", "DeviceLike", "DTypeLike"]
 
-Array: TypeAlias = np.ndarray | torch.Tensor
-ArrayLike: TypeAlias = np.ndarray | torch.Tensor | Sequence[Any] | float | int
-DeviceLike: TypeAlias = torch.device | str
-DTypeLike: TypeAlias = torch.dtype
+Array: TypeAlias = "np.ndarray | torch.Tensor"
+ArrayLike: TypeAlias = "np.ndarray | torch.Tensor | Sequence[Any] | float | int"
+DeviceLike: TypeAlias = "torch.device | str"
+DTypeLike: TypeAlias = "torch.dtype"

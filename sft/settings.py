@@ -20,14 +20,13 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field, fields
-from typing import Any
-
-import torch
+from typing import TYPE_CHECKING, Any
 
 from polygeo.checks import check_choice, check_int, check_positive
 from polygeo.render import RasterSettings
 
-from .template import MAX_TILT, ORDER_AUTO, PATCHES_AUTO, _check_patches, _check_tilt
+if TYPE_CHECKING:
+    import torch
 
 __all__ = [
     "SfTSettings",
@@ -40,6 +39,38 @@ __all__ = [
 
 #: Names of the per-frame parameters of the models (what ``freeze`` may name).
 PARAMETERS = ("d_alpha", "d_uv", "d_x", "rot", "trans", "p_rot", "p_trans")
+
+#: Value of ``order`` that lets the optimiser raise the jet order on plateaus.
+ORDER_AUTO = "auto"
+
+#: Value of ``patches`` that picks the fewest patches each of which is a height graph.
+PATCHES_AUTO = "auto"
+
+#: Default largest tilt (degrees) of a triangle from its patch's axis for ``patches="auto"``.
+#: One patch tracks sheets whose graph tilts to about 80 degrees (the ``bend`` sequence), so
+#: 70 at the template leaves room for the deformation that follows.
+MAX_TILT = 70.0
+
+
+def _check_patches(patches, max_tilt: float) -> tuple[int | str, float]:
+    """Validate a patch count (an integer >= 1 or ``"auto"``) and ``max_tilt`` (degrees).
+
+    Returns them (the count as int); raises ``ValueError``/``TypeError`` naming the argument.
+    """
+    if isinstance(patches, str):
+        if patches != PATCHES_AUTO:
+            raise ValueError(f"patches: expected an integer >= 1 or 'auto', got {patches!r}")
+    else:
+        patches = check_int(patches, "patches", low=1)
+    return patches, _check_tilt(max_tilt, "max_tilt")
+
+
+def _check_tilt(value, name: str) -> float:
+    """Validate an angle in degrees in ``(0, 90)``; raises ``ValueError`` naming ``name``."""
+    value = check_positive(value, name)
+    if value >= 90.0:
+        raise ValueError(f"{name}: expected degrees in (0, 90), got {value}")
+    return value
 
 
 def _check_bool(value: Any, name: str) -> bool:
@@ -212,6 +243,8 @@ class OptimiserSettings:
     @property
     def torch_dtype(self) -> torch.dtype:
         """``dtype`` as a torch dtype."""
+        import torch  # here: the settings (and `polygeo sft --help`) need no torch
+
         return torch.float32 if self.dtype == "float32" else torch.float64
 
 

@@ -19,49 +19,56 @@ Example (the API a benchmark uses)::
     print(evaluate(load_model(run.model_path))["mean"])     # held-out eps_e, eps_a, eps_c (%)
 """
 
-from .data import (
-    Case,
-    Sequence,
-    ShapeCase,
-    check_case,
-    check_phenotypes,
-    garment_weights,
-    held_out_cases,
-    random_shapes,
-    sequence_of,
-    shape_case,
-    stress_cases,
-    template_garment,
-    training_sequences,
-)
-from .infer import (
-    Drape,
-    build_model,
-    check_garment_for,
-    drape_case,
-    drape_motion,
-    drape_sequence,
-    evaluate,
-    frame_metrics,
-    garment_key,
-    load_model,
-    model_garment,
-    save_model,
-    shipped_model_path,
-    time_inference,
-)
-from .losses import TERMS, body_contacts, loss_terms
-from .model import GapsModel, feature_size, pose_features, top_weights
-from .settings import (
-    HELD_OUT_MOTIONS,
-    INEXTENSIBILITY,
-    METHODS,
-    POSE_BONES,
-    TRAIN_MOTIONS,
-    GapsSettings,
-    TrainSettings,
-)
-from .train import STAGES, Trainer, TrainResult, train, untrained_model
+from typing import TYPE_CHECKING
+
+from polygeo.lazy import attach
+
+if TYPE_CHECKING:
+    from .data import (
+        Case,
+        Sequence,
+        ShapeCase,
+        check_case,
+        check_phenotypes,
+        garment_weights,
+        held_out_cases,
+        random_shapes,
+        sequence_of,
+        shape_case,
+        stress_cases,
+        template_garment,
+        training_sequences,
+    )
+    from .infer import (
+        Drape,
+        build_model,
+        check_garment_for,
+        drape_case,
+        drape_motion,
+        drape_sequence,
+        evaluate,
+        frame_metrics,
+        garment_key,
+        load_model,
+        model_garment,
+        save_model,
+        shipped_model_path,
+        time_inference,
+    )
+    from .losses import TERMS, body_contacts, loss_terms
+    from .model import GapsModel, feature_size, pose_features, top_weights
+    from .settings import (
+        HELD_OUT_MOTIONS,
+        INEXTENSIBILITY,
+        METHODS,
+        POSE_BONES,
+        TRAIN_MOTIONS,
+        GapsSettings,
+        TrainSettings,
+    )
+    from .train import STAGES, Trainer, TrainResult, train, untrained_model
+
+__getattr__, __dir__ = attach(__name__, __file__)
 
 __all__ = [
     "Case",

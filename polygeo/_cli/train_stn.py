@@ -7,7 +7,7 @@ from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from polygeo.stn_train import TrainConfig
+    from polygeo.stn_settings import TrainConfig
 
     d = TrainConfig()
     p = sub.add_parser(

@@ -13,12 +13,19 @@ Main entry points: :class:`Camera`, :class:`RasterSettings`, :func:`render`,
 
 from __future__ import annotations
 
-from .camera import Camera
-from .losses import iou, rgb_loss, silhouette_loss, soft_iou
-from .reference import render_reference
-from .settings import RasterSettings, sigma_from_softras
-from .soft import RenderOutput, project_faces, rasterize_faces, render, render_silhouette
-from .texture import checkerboard, flip_v, sample_texture
+from typing import TYPE_CHECKING
+
+from polygeo.lazy import attach
+
+if TYPE_CHECKING:
+    from .camera import Camera
+    from .losses import iou, rgb_loss, silhouette_loss, soft_iou
+    from .reference import render_reference
+    from .settings import RasterSettings, sigma_from_softras
+    from .soft import RenderOutput, project_faces, rasterize_faces, render, render_silhouette
+    from .texture import checkerboard, flip_v, sample_texture
+
+__getattr__, __dir__ = attach(__name__, __file__)
 
 __all__ = [
     "Camera",

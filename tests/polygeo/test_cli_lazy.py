@@ -26,6 +26,23 @@ def test_help_and_argument_errors_stay_light(argv, rc):
     assert f"HEAVY [] RC {rc}" in out, out
 
 
+PLUGIN = CODE.replace('("torch", "numba", "scipy", "sft", "draping", "trimesh")',
+                      '("torch", "numba", "scipy", "trimesh", "pyvista", "cv2")')
+
+
+@pytest.mark.parametrize("argv, rc", [
+    (["sft", "--help"], 0), (["sft", "--bogus"], 2), (["train-stn", "--help"], 0),
+    (["drape", "--help"], 0), (["drape", "--bogus"], 2), (["train-drape", "--help"], 0),
+    (["drape-reference", "--help"], 0), (["demo", "--help"], 0),
+])
+def test_plugin_help_and_argument_errors_import_no_torch(argv, rc):
+    # the plug-ins (sft, draping) may import their own light modules, never torch or numba:
+    # `--help` and a mistyped option answer in a fraction of a second
+    out = subprocess.run([sys.executable, "-c", PLUGIN.format(argv=argv)], capture_output=True,
+                         text=True, check=True).stdout
+    assert f"HEAVY [] RC {rc}" in out, out
+
+
 def test_top_level_help_lists_every_command(capsys):
     from importlib.metadata import entry_points
 
