@@ -45,7 +45,6 @@ machine this ran on was shared, so wall times include waiting for a core.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import shutil
@@ -101,10 +100,7 @@ def train_settings(garment: str, method: str = "gaps", inext: str = "auto",
 def _run_key(settings) -> str:
     from polygeo.runs import fingerprint
 
-    d = dataclasses.asdict(settings)
-    d.pop("steps")
-    d.pop("checkpoint_every")
-    return fingerprint(d)
+    return fingerprint(settings.key_dict())
 
 
 def model_path(settings, steps: int, cache: Path) -> Path:

@@ -20,7 +20,8 @@ shapes are drawn with the run's seed, below 1000; ``draping.gaps.held_out_cases`
 A motion is generated once with :data:`MOTION_FRAMES` frames at 30 fps and a case uses its
 first ``frames`` (the procedural motions depend on their length), so that a longer
 evaluation extends a cached reference instead of redoing it. The cache key of a reference is
-the fingerprint of garment, motion, seed, shape, motion length and solver settings.
+the fingerprint of garment, the template's content (:func:`template_digest`), motion, seed,
+shape, motion length and solver settings.
 """
 
 from __future__ import annotations
@@ -121,11 +122,29 @@ def case_motion(cache: Path, case: EvalCase, body=None):
                   torch.as_tensor(trans, dtype=torch.float32), 30.0)
 
 
+def template_digest(name: str) -> str:
+    """SHA-256 of a shipped garment template's content (float64 vertices and faces).
+
+    Part of a reference's cache key: a regenerated template (new cut, new sampling, moved
+    vertices) gets new references instead of re-using drapes of the old one.
+    """
+    import hashlib
+
+    from draping.garments import garment
+
+    g = garment(name)
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(np.asarray(g.vertices, dtype=np.float64)).tobytes())
+    h.update(np.ascontiguousarray(np.asarray(g.faces, dtype=np.int64)).tobytes())
+    return h.hexdigest()
+
+
 def _key(case: EvalCase) -> str:
     from draping.drape import DEFAULT_SOLVER
     from polygeo.runs import fingerprint
 
-    return fingerprint({"garment": case.garment, "motion": case.motion, "seed": case.seed,
+    return fingerprint({"garment": case.garment, "template": template_digest(case.garment),
+                        "motion": case.motion, "seed": case.seed,
                         "shape": list(case.shape), "motion_frames": MOTION_FRAMES,
                         "solver": dataclasses.asdict(DEFAULT_SOLVER), "version": VERSION})
 

@@ -10,7 +10,8 @@ offered, one per draping method that uses them:
     vertices of different limbs (a dress between the legs).
 ``laplacian``
     The nearest-vertex weights, then iterative Laplacian smoothing over the garment's own
-    edges (NCS): ``W <- (1 - alpha) W + alpha * mean of the neighbours' W``.
+    edges (NCS): ``W <- (1 - alpha) W + alpha * mean of the neighbours' W``
+    (:func:`smooth_weights`, which GAPS also applies to its RBF weights).
 ``rbf``
     GAPS's body participation (thesis eq. (34)-(36)). With ``m_i`` the distance from garment
     vertex ``g_i`` to its nearest body vertex and ``d_ij`` its distance to body vertex ``b_j``,
@@ -52,6 +53,7 @@ __all__ = [
     "dense_body_weights",
     "nearest_weights",
     "laplacian_weights",
+    "smooth_weights",
     "rbf_weights",
     "skinning_weights",
 ]
@@ -201,15 +203,53 @@ def laplacian_weights(
     """
     g = _points(garment_vertices, "garment_vertices")
     faces = check_faces(garment_faces, g.shape[0], name="garment_faces")
+    w = nearest_weights(g, body_vertices, body_weights)
+    return _out(smooth_weights(w, faces, iterations=iterations, alpha=alpha), garment_vertices)
+
+
+def smooth_weights(weights: Any, faces: Any, *, iterations: int = 20, alpha: float = 0.5) -> Any:
+    """Iterative Laplacian smoothing of per-vertex blend weights over a mesh's edges.
+
+    ``W <- (1 - alpha) W + alpha * mean of the neighbours' W``, ``iterations`` times, then
+    each row renormalised. Used by :func:`laplacian_weights` (on nearest-vertex weights) and
+    by GAPS on its RBF weights (:class:`draping.gaps.GapsSettings` ``skin_smoothing``).
+
+    Parameters
+    ----------
+    weights : (G, J) float array or tensor
+        Non-negative weights of the mesh's vertices, rows summing to one.
+    faces : (F, 3) int array or tensor
+        The mesh's triangles (indices into the rows of ``weights``).
+    iterations : int
+        Smoothing steps, ``>= 0`` (0 returns the weights unchanged).
+    alpha : float
+        Step in ``(0, 1]``.
+
+    Returns
+    -------
+    (G, J) float64 array or tensor
+        Rows summing to one; the array type of ``weights``. Vertices in no face keep their
+        weights.
+
+    Raises
+    ------
+    ValueError, TypeError
+        Bad shapes, negative or non-finite weights, bad faces, ``iterations < 0`` or
+        ``alpha`` outside ``(0, 1]``.
+    """
+    w = _matrix(weights, "weights")
+    if (w < 0).any():
+        raise ValueError("weights: expected non-negative blend weights")
+    f = check_faces(faces, w.shape[0], name="faces")
     iterations = check_int(iterations, "iterations", low=0)
     alpha = check_positive(alpha, "alpha")
     if alpha > 1:
         raise ValueError(f"alpha: expected a value in (0, 1], got {alpha}")
-    w = nearest_weights(g, body_vertices, body_weights)
-    f = np.asarray(faces.cpu() if torch.is_tensor(faces) else faces, dtype=np.int64)
+    f = np.asarray(f.cpu() if torch.is_tensor(f) else f, dtype=np.int64)
+    n = w.shape[0]
     a = np.concatenate([f[:, 0], f[:, 1], f[:, 2]])
     c = np.concatenate([f[:, 1], f[:, 2], f[:, 0]])
-    adj = sp.csr_matrix((np.ones(2 * a.size), (np.r_[a, c], np.r_[c, a])), shape=(g.shape[0],) * 2)
+    adj = sp.csr_matrix((np.ones(2 * a.size), (np.r_[a, c], np.r_[c, a])), shape=(n, n))
     adj.data[:] = 1.0  # duplicated edges count once
     deg = np.asarray(adj.sum(1)).ravel()
     has = deg > 0  # isolated vertices keep their weights
@@ -217,8 +257,10 @@ def laplacian_weights(
     for _ in range(iterations):
         smoothed = mean @ w
         w = np.where(has[:, None], (1 - alpha) * w + alpha * smoothed, w)
-    w /= w.sum(1, keepdims=True)
-    return _out(w, garment_vertices)
+    total = w.sum(1, keepdims=True)
+    if (total <= 0).any():
+        raise ValueError(f"weights: {int((total <= 0).sum())} rows have no weight")
+    return _out(w / total, weights)
 
 
 def rbf_weights(

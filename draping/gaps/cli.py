@@ -1,6 +1,10 @@
 """``polygeo train-drape`` and ``polygeo drape`` (entry-point plug-ins of ``polygeo.commands``).
 
-Heavy modules are imported inside the commands so that ``--help`` stays fast.
+``--help`` and argument errors import no torch: the method names come from the torch-free
+:mod:`draping.gaps.settings` (their one home); the garment, motion and phenotype names are
+copies of :data:`draping.garments.GARMENTS`, :data:`draping.motion.MOTIONS` and
+:data:`draping.body.ANNY_PHENOTYPES` (whose modules import torch), kept equal by a test. The
+commands import the rest when they run.
 """
 
 from __future__ import annotations
@@ -11,6 +15,9 @@ import sys
 import time
 from pathlib import Path
 
+from .settings import INEXTENSIBILITY as _INEXTENSIBILITY
+from .settings import METHODS as _METHODS
+
 __all__ = [
     "register_train", "register_drape", "run_train", "run_drape", "held_out_record",
     "check_record",
@@ -19,7 +26,6 @@ __all__ = [
 _GARMENTS = ("tshirt", "tank", "longsleeve", "dress", "skirt", "pants", "shorts")
 _MOTIONS = ("walk", "arms", "squat", "turn", "jacks", "random")
 _PHENOTYPES = ("gender", "age", "muscle", "weight", "height", "proportions")
-_METHODS = ("gaps", "snug", "ncs")
 
 
 def register_train(sub: argparse._SubParsersAction) -> None:
@@ -47,22 +53,25 @@ def register_train(sub: argparse._SubParsersAction) -> None:
         epilog="example: polygeo train-drape --method gaps --garment tshirt --minutes 30 -o RUN",
     )
     p.add_argument("--method", default="gaps", choices=_METHODS,
-                   help="gaps: RBF body-participation skinning, GAPS bending, inextensibility "
-                   "with the k_ext schedule; snug: nearest-vertex skinning, no inextensibility; "
+                   help="gaps: RBF body-participation skinning (smoothed over the garment, "
+                   "--skin-smoothing), GAPS bending, inextensibility with the k_ext schedule; "
+                   "snug: nearest-vertex skinning, no inextensibility; "
                    "ncs: Laplacian-smoothed skinning, no inextensibility (default gaps)")
     p.add_argument("--garment", default="tshirt", metavar="NAME",
                    help=f"garment template, one of {', '.join(_GARMENTS)} (default tshirt)")
     p.add_argument("--garment-file", default=None, metavar="FILE",
                    help="garment mesh (OBJ/PLY/OFF/STL, metres) in the rest pose of the default "
                    "body; checked (manifold, no self-intersection, outside the body)")
-    p.add_argument("--inextensibility", default="auto",
-                   choices=("auto", "schedule", "one", "none"),
+    p.add_argument("--inextensibility", default="auto", choices=_INEXTENSIBILITY,
                    help="L_inext: schedule (eq. 45), one (k_ext = 1), none; auto: schedule for "
                    "gaps, none for the baselines (default auto)")
     p.add_argument("--width", type=int, default=None, help="GRU width (default 128)")
     p.add_argument("--depth", type=int, default=None, help="GRU layers (default 2)")
     p.add_argument("--rank", type=int, default=None,
                    help="output basis size, 0 for a full width x 3V layer (default 64)")
+    p.add_argument("--skin-smoothing", type=int, default=None, metavar="N",
+                   help="gaps: Laplacian smoothing steps over the garment's edges applied to the "
+                   "RBF skinning weights; 0: the thesis' weights (default 20)")
     p.add_argument("--steps", type=int, default=None, metavar="N",
                    help="total optimiser steps (default 3000)")
     p.add_argument("--minutes", type=float, default=None, metavar="M",
@@ -103,7 +112,7 @@ def _settings(args):
 
     mk = {"garment": args.garment, "garment_file": args.garment_file, "method": args.method,
           "inextensibility": args.inextensibility}
-    for k in ("width", "depth", "rank"):
+    for k in ("width", "depth", "rank", "skin_smoothing"):
         if getattr(args, k) is not None:
             mk[k] = getattr(args, k)
     tk = {"seed": args.seed, "init": args.init}

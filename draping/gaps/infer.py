@@ -158,7 +158,8 @@ def load_model(path_or_name: str | Path) -> GapsModel:
     ck = load_checkpoint(p)
     if ck.meta.get("format") != _FORMAT:
         raise ValueError(f"model: {p} is not a GAPS model (format {ck.meta.get('format')!r})")
-    s = GapsSettings(**ck.meta["settings"])
+    # Files from before ``skin_smoothing`` existed were trained on the thesis' RBF weights.
+    s = GapsSettings(**{"skin_smoothing": 0, **ck.meta["settings"]})
     st = {k: (t.float() if t.is_floating_point() else t) for k, t in ck.tensors["state"].items()}
     model = GapsModel(s, st["template"], st["faces"], st["weights"], st["indices"],
                       float(ck.meta["unit"]), int(ck.meta["n_features"]))

@@ -218,10 +218,7 @@ class Trainer:
 def _fingerprint(settings: TrainSettings) -> str:
     from polygeo.runs import fingerprint
 
-    d = dataclasses.asdict(settings)
-    for k in ("steps", "checkpoint_every"):  # more steps continue the same run
-        d.pop(k)
-    return fingerprint(d)
+    return fingerprint(settings.key_dict())  # more steps continue the same run
 
 
 def _curves(log: list, path: Path) -> None:

@@ -78,3 +78,23 @@ def test_parsimony_picks_the_smallest_network_within_ten_percent(bm):
     assert bm.parsimonious(rows)[0]["label"] == "small"
     with pytest.raises(ValueError, match="rows"):
         bm.parsimonious([])
+
+
+def test_reference_key_follows_the_template_content(ev, monkeypatch):
+    import draping.garments as garments
+
+    c = ev.eval_cases(["tshirt"], frames=4, quick=True)[0]
+    key = ev._key(c)
+    folder = ev.reference_dir(Path("/cache"), c)
+    assert ev._key(c) == key
+    real = garments.garment
+
+    def moved(name, *a, **k):
+        g = real(name, *a, **k)
+        v = np.array(g.vertices, dtype=np.float64)
+        v[0, 0] += 1e-6  # a regenerated template: one vertex moved by a micrometre
+        return garments.Garment(g.name, v, g.faces, g.info)
+
+    monkeypatch.setattr(garments, "garment", moved)
+    assert ev._key(c) != key
+    assert ev.reference_dir(Path("/cache"), c) != folder  # a stale drape is not re-used

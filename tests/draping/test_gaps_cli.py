@@ -20,7 +20,8 @@ def _help(name: str) -> str:
 def test_help_documents_options_and_units():
     t = _help("train-drape")
     for opt in ("--method", "--garment", "--garment-file", "--minutes", "--steps", "--seed",
-                "--resume", "-o", "--width", "--depth", "--rank", "--inextensibility"):
+                "--resume", "-o", "--width", "--depth", "--rank", "--inextensibility",
+                "--skin-smoothing"):
         assert opt in t, opt
     for word in ("minutes", "snug", "ncs", "held", "eps_c", "CPU"):
         assert word in t, word
@@ -86,3 +87,22 @@ def test_train_resume_and_drape(tmp_path, capsys):
     line = _fails(capsys, ["drape", "--model", str(run / "model.pt"), "--garment", "dress",
                            "-o", str(out)])
     assert "trained for garment" in line
+
+
+def test_option_choices_are_the_library_names():
+    from draping.gaps import INEXTENSIBILITY, METHODS
+    from draping.garments import GARMENTS
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command")
+    for name in ("train-drape", "drape"):
+        acts = {a.dest: a for a in sub.choices[name]._actions}
+        assert tuple(acts["method"].choices) == METHODS
+    acts = {a.dest: a for a in sub.choices["train-drape"]._actions}
+    assert tuple(acts["inextensibility"].choices) == INEXTENSIBILITY
+    # the torch-free copies in the CLI (their modules import torch) equal the library's names
+    from draping.body import ANNY_PHENOTYPES
+    from draping.gaps import cli
+    from draping.motion import MOTIONS
+
+    assert (cli._GARMENTS, cli._MOTIONS, cli._PHENOTYPES) == (GARMENTS, MOTIONS, ANNY_PHENOTYPES)

@@ -327,3 +327,45 @@ def test_gradient_clipping_bounds_a_spike(body):
     assert after == pytest.approx(n3, rel=1e-5)
     with pytest.raises(ValueError, match="grad_clip"):
         TrainSettings(grad_clip=-1.0)
+
+
+def test_smoothed_rbf_stretches_less_than_the_thesis_rbf_on_a_tshirt(body):
+    """Skinning alone on a held-back shape and motion: the RBF weights smoothed over the
+    garment (``skin_smoothing``, the default) stretch the T-shirt less than the thesis' RBF
+    weights, and vary less between neighbouring vertices."""
+    from draping.gaps import Case, build_model, drape_case, frame_metrics, garment_weights
+
+    case = Case("turn", 0, 1.0, (0.3, 0.6, 0.5, 0.6, 0.5, 0.5), 20)
+    eps, rough = {}, {}
+    for n in (0, 20):
+        st = GapsSettings(garment="tshirt", skin_smoothing=n)
+        model, g = build_model(st, body)
+        eps[n] = float(np.mean(frame_metrics(drape_case(model, body, case), body)["eps_e"]))
+        w = garment_weights(st, g, body).numpy()
+        f = np.asarray(g.faces)
+        rough[n] = float(np.abs(w[f[:, 0]] - w[f[:, 1]]).sum(1).mean())
+    assert GapsSettings().skin_smoothing == 20
+    assert eps[20] < eps[0]
+    assert rough[20] < 0.95 * rough[0]
+
+
+def test_skin_smoothing_key_and_legacy_files(tmp_path, trainer):
+    from polygeo.runs import load_checkpoint, save_checkpoint
+
+    assert "skin_smoothing" in GapsSettings().key_dict()
+    assert "skin_smoothing" not in GapsSettings(skin_smoothing=0).key_dict()
+    # The baselines do not use it: their keys (cached runs, resumes) do not depend on it.
+    assert (GapsSettings(method="ncs", skin_smoothing=3).key_dict()
+            == GapsSettings(method="ncs").key_dict())
+    ts = TrainSettings(GapsSettings(skin_smoothing=0))
+    assert ts.key_dict() == ts.replace(steps=5, checkpoint_every=7).key_dict()
+    assert "skin_smoothing" not in ts.key_dict()["model"]
+    with pytest.raises(ValueError, match="skin_smoothing"):
+        GapsSettings(skin_smoothing=-1)
+    # A file written before the setting existed was trained on the thesis' weights.
+    p = save_model(tmp_path / "m.pt", trainer.model)
+    ck = load_checkpoint(p)
+    meta = dict(ck.meta)
+    meta["settings"] = {k: v for k, v in meta["settings"].items() if k != "skin_smoothing"}
+    save_checkpoint(tmp_path / "old.pt", ck.tensors, meta)
+    assert load_model(tmp_path / "old.pt").settings.skin_smoothing == 0

@@ -8,6 +8,7 @@ from draping.skinning import (
     nearest_weights,
     rbf_weights,
     skinning_weights,
+    smooth_weights,
 )
 
 
@@ -144,3 +145,47 @@ def test_bad_input_is_named():
         laplacian_weights(garment, faces, body, w, alpha=1.5)
     with pytest.raises(ValueError, match="garment_faces"):
         laplacian_weights(garment, faces + garment.shape[0], body, w)
+
+
+def _square():
+    """Two triangles on four vertices: 0 and 2 have three neighbours, 1 and 3 two."""
+    return np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def test_smooth_weights_one_step_is_the_neighbour_mean():
+    faces = _square()
+    w = np.eye(4)
+    out = smooth_weights(w, faces, iterations=1, alpha=0.5)
+    np.testing.assert_allclose(out[0], [0.5, 1 / 6, 1 / 6, 1 / 6])
+    np.testing.assert_allclose(out[1], [0.25, 0.5, 0.25, 0.0])
+    np.testing.assert_allclose(out.sum(1), 1.0)
+    np.testing.assert_allclose(smooth_weights(w, faces, iterations=0), w)
+    same = np.tile([[0.2, 0.3, 0.5, 0.0]], (4, 1))  # equal rows are a fixed point
+    np.testing.assert_allclose(smooth_weights(same, faces, iterations=7), same)
+    t = smooth_weights(torch.from_numpy(w), torch.from_numpy(faces), iterations=1)
+    assert isinstance(t, torch.Tensor)
+    np.testing.assert_allclose(t.numpy(), out)
+
+
+def test_laplacian_weights_are_smoothed_nearest_weights():
+    body, w = _limb(n_bones=2)
+    garment, faces = _sleeve(0.2)
+    np.testing.assert_allclose(laplacian_weights(garment, faces, body, w, iterations=9),
+                               smooth_weights(nearest_weights(garment, body, w), faces,
+                                              iterations=9))
+
+
+def test_smooth_weights_bad_input_is_named():
+    faces = _square()
+    w = np.eye(4)
+    with pytest.raises(ValueError, match="iterations"):
+        smooth_weights(w, faces, iterations=-1)
+    for alpha in (0.0, 1.5):
+        with pytest.raises(ValueError, match="alpha"):
+            smooth_weights(w, faces, alpha=alpha)
+    with pytest.raises(ValueError, match="weights"):
+        smooth_weights(-w, faces)
+    with pytest.raises(ValueError, match="faces"):
+        smooth_weights(w, faces + 3)
+    with pytest.raises(ValueError, match="weights"):
+        smooth_weights(w[:, :, None], faces)
