@@ -194,7 +194,8 @@ class TrainSettings:
         Steps between checkpoints.
     init : str or None
         A model file (:func:`draping.gaps.save_model`) of the same garment and architecture to
-        start from (fine-tuning) instead of the zero output basis.
+        start from (fine-tuning) instead of the zero output basis. Its ``skin_smoothing`` may
+        differ: the network is taken, the skinning weights are this run's.
     """
 
     model: GapsSettings = field(default_factory=GapsSettings)

@@ -62,13 +62,7 @@ class Trainer:
         self.body = AnnyBody.load() if body is None else body
         self.model, self.template = build_model(settings.model, self.body)
         if settings.init is not None:
-            from .infer import load_model
-
-            start = load_model(settings.init)
-            if start.settings != settings.model:
-                raise ValueError(f"init: {settings.init} was trained with {start.settings}, "
-                                 f"expected {settings.model}")
-            self.model.load_state_dict(start.state_dict())
+            self._init_from(settings.init)
         self.opt = torch.optim.Adam(self.model.parameters(), lr=settings.lr)
         self.shapes = random_shapes(settings.shapes, settings.seed)
         self._cases: dict[int, ShapeCase] = {}
@@ -80,6 +74,25 @@ class Trainer:
         self.step = 0
         self.grad_ref = float("nan")  # running mean of clipped gradient norms (grad_clip)
         self.timing = dict.fromkeys(STAGES, 0.0)
+
+    def _init_from(self, path: str) -> None:
+        """Start from a saved model of the same garment and architecture (fine-tuning).
+
+        A model whose skinning smoothing differs (e.g. one saved before ``skin_smoothing``)
+        gives its network; the skinning weights stay those of this run's settings.
+        """
+        from .infer import load_model
+
+        start = load_model(path)
+        want = self.settings.model
+        same_net = dataclasses.replace(start.settings, skin_smoothing=want.skin_smoothing)
+        if same_net != want:
+            raise ValueError(f"init: {path} was trained with {start.settings}, expected {want}")
+        state = start.state_dict()
+        if start.settings != want:  # other skinning weights: keep this run's
+            for k in ("weights", "indices"):
+                state[k] = getattr(self.model, k)
+        self.model.load_state_dict(state)
 
     def case(self, i: int) -> ShapeCase:
         """The garment of training shape ``i`` (made once, then cached)."""

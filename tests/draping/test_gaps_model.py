@@ -369,3 +369,21 @@ def test_skin_smoothing_key_and_legacy_files(tmp_path, trainer):
     meta["settings"] = {k: v for k, v in meta["settings"].items() if k != "skin_smoothing"}
     save_checkpoint(tmp_path / "old.pt", ck.tensors, meta)
     assert load_model(tmp_path / "old.pt").settings.skin_smoothing == 0
+
+
+def test_init_from_a_model_with_other_skin_smoothing(tmp_path, body):
+    """Fine-tuning a model trained on other skinning weights: its network, this run's weights."""
+    kw = dict(batch=2, shapes=2, motion_frames=12, speeds=(1.0,), random_motions=1, seed=3)
+    old = Trainer(TrainSettings(GapsSettings(garment="tshirt", skin_smoothing=0, **SMALL), **kw),
+                  body)
+    with torch.no_grad():
+        old.model.basis.weight.normal_()
+    p = save_model(tmp_path / "old.pt", old.model)
+    new = Trainer(TrainSettings(GapsSettings(garment="tshirt", **SMALL), init=str(p), **kw), body)
+    fresh = Trainer(TrainSettings(GapsSettings(garment="tshirt", **SMALL), **kw), body)
+    torch.testing.assert_close(new.model.basis.weight, old.model.basis.weight.half().float())
+    torch.testing.assert_close(new.model.weights, fresh.model.weights)
+    assert not torch.allclose(new.model.weights, old.model.weights)
+    with pytest.raises(ValueError, match="init"):
+        Trainer(TrainSettings(GapsSettings(garment="tshirt", width=8, depth=1, rank=8),
+                              init=str(p), **kw), body)
