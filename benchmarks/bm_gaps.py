@@ -1,9 +1,10 @@
 """Benchmark of GAPS (issue 20): GAPS vs SNUG-like vs NCS-like, ablations, width/depth sweep.
 
 Run ``python benchmarks/bm_gaps.py [--sections methods ablations sweep charts] [--quick]
-[--steps N] [--frames T] [--workers N] [--cache DIR]``. Writes ``bm_gaps.json`` (sections
-merged into an existing file) and ``bm_gaps.png`` (+ ``bm_gaps_sweep.png``,
-``bm_gaps_ablations.png``, ``bm_gaps_strip.png``) into ``benchmarks/results``.
+[--steps N] [--frames T] [--cases turn/2000 random/2001] [--workers N] [--cache DIR]``.
+Writes ``bm_gaps.json`` (sections merged into an existing file) and ``bm_gaps.png``
+(+ ``bm_gaps_sweep.png``, ``bm_gaps_ablations.png``, ``bm_gaps_strip.png``) into
+``benchmarks/results``.
 
 Evaluation set (``datasets/make_gaps_eval.py``, held back from training): the T-shirt, the
 dress and the skirt on two body shapes (phenotype draws with seeds 2000, 2001) moving through
@@ -567,6 +568,29 @@ def merge_results(path: Path, new: dict, settings: dict) -> dict:
     return res
 
 
+def keep_pairs(cases: list, pairs) -> list:
+    """The cases whose ``motion/shape_seed`` is in ``pairs`` (all of them when None).
+
+    Raises
+    ------
+    ValueError
+        A pair that is malformed or matches no case.
+    """
+    if pairs is None:
+        return cases
+    want = set()
+    for p in pairs:
+        m, _, k = p.partition("/")
+        if not m or not k.isdigit():
+            raise ValueError(f"cases: expected MOTION/SHAPE_SEED like turn/2000, got {p!r}")
+        want.add((m, int(k)))
+    out = [c for c in cases if (c.motion, c.shape_seed) in want]
+    missing = want - {(c.motion, c.shape_seed) for c in out}
+    if missing:
+        raise ValueError(f"cases: no held-back case for {sorted(missing)}")
+    return out
+
+
 def _sweep_arg(text: str) -> tuple:
     return tuple(tuple(int(v) for v in item.split("x")) for item in text.split(","))
 
@@ -596,6 +620,9 @@ def parse(argv=None) -> argparse.Namespace:
                     help="keep these held-back motions (default both)")
     ap.add_argument("--shape-seeds", nargs="+", type=int, default=None, choices=ev.SHAPE_SEEDS,
                     help="keep these held-back shapes (default both)")
+    ap.add_argument("--cases", nargs="+", default=None, metavar="MOTION/SHAPE_SEED",
+                    help="keep these (motion, shape) pairs only, e.g. turn/2000 random/2001 "
+                    "(default: every pair --motions x --shape-seeds)")
     ap.add_argument("--wait-models", action="store_true",
                     help="do not train: solve the references, then wait for the models "
                     "(trained by a concurrent --only-train run)")
@@ -619,7 +646,8 @@ def main(argv=None) -> dict:
     args = parse(argv)
     env = environment()
     cache = ev.default_cache() if args.cache is None else args.cache
-    cases = ev.eval_cases(args.garments, args.frames, args.quick, args.motions, args.shape_seeds)
+    cases = keep_pairs(ev.eval_cases(args.garments, args.frames, args.quick, args.motions,
+                                     args.shape_seeds), args.cases)
     c0, t0 = time.process_time(), time.perf_counter()
     need = prepare_all(args, cases, cache)
     if args.only_train:

@@ -98,3 +98,15 @@ def test_reference_key_follows_the_template_content(ev, monkeypatch):
     monkeypatch.setattr(garments, "garment", moved)
     assert ev._key(c) != key
     assert ev.reference_dir(Path("/cache"), c) != folder  # a stale drape is not re-used
+
+
+def test_case_pairs_keep_only_the_named_cases(bm, ev):
+    cases = ev.eval_cases(["tshirt", "dress"], frames=4)
+    kept = bm.keep_pairs(cases, ["turn/2000", "random/2001"])
+    assert sorted((c.garment, c.motion, c.shape_seed) for c in kept) == [
+        ("dress", "random", 2001), ("dress", "turn", 2000),
+        ("tshirt", "random", 2001), ("tshirt", "turn", 2000)]
+    assert bm.keep_pairs(cases, None) == cases
+    for bad in (["turn"], ["turn/x"], ["walk/2000"]):
+        with pytest.raises(ValueError, match="cases"):
+            bm.keep_pairs(cases, bad)
