@@ -207,6 +207,58 @@ def test_capped_inner_solves_reach_the_same_drape(hessian):
     assert capped.energy == pytest.approx(full.energy, rel=1e-2)
 
 
+def test_forcing_term_follows_eisenstat_walker():
+    ft = _minimize.forcing_term
+    assert ft(1.0, None, 0.5, 1e-6) == 0.5  # first step: the cap
+    # fast convergence (|g| fell 10x): 0.9 * 0.1^2, the safeguard 0.9 * 0.01^2 is below 0.1
+    assert ft(0.1, 1.0, 0.01, 1e-9) == pytest.approx(0.009)
+    # slow convergence (|g| fell 2 %): the cap
+    assert ft(0.98, 1.0, 0.5, 1e-9) == 0.5
+    # safeguard: a previous forcing term of 0.4 keeps it at 0.9 * 0.16 = 0.144
+    assert ft(0.1, 1.0, 0.4, 1e-9) == pytest.approx(0.144)
+    # never more accurate than the stopping rule can see: 0.5 * tol_abs / |g|
+    assert ft(1e-3, 1.0, 0.01, 1e-4) == pytest.approx(0.05)
+    for args in [(1.0, 1.0, 0.5, 1e-3), (1e-8, 1.0, 1e-6, 1e-12), (5.0, 1.0, 0.5, 1.0)]:
+        assert 0 < ft(*args) <= 0.5
+
+
+def test_tight_dynamic_solve_meets_the_rule_by_autograd():
+    """The stopping rule checked independently: the torch energy's autograd gradient."""
+    v, f = grid_sheet(9, 0.5, z=0.305)
+    r = P.rest_state(v, f)
+    st = R.SolverSettings(tol=1e-6, max_iter=500, max_requery=0, friction=0.0)
+    v0 = np.tile([0.0, 0.0, -1.0], (81, 1))
+    q = R.sphere_query([0, 0, 0], 0.3)
+    x0 = R.project_outside(R.free_fall(v, v0, 1 / 30), q, st.collision_eps)
+    out = R.drape_step(r, v, v0, 1 / 30, q, st, x0=x0)
+    assert out.converged
+    # the planes of the single query (max_requery 0) are those at the start
+    anchor, normal = R._planes(x0, q)
+    x = out.x.clone().requires_grad_(True)
+    e = R.frame_energy(x, r, st, x_prev=torch.as_tensor(v), v_prev=torch.as_tensor(v0),
+                       dt=1 / 30, anchor=anchor, normal=normal)
+    (g,) = torch.autograd.grad(e, x)
+    weight = float(torch.linalg.norm(r.mass)) * float(np.linalg.norm(st.gravity))
+    assert float(torch.linalg.norm(g)) <= 1.01 * st.tol * weight
+    assert float(torch.linalg.norm(g)) / weight == pytest.approx(out.residual, rel=1e-3, abs=1e-9)
+
+
+def test_newton_gives_up_after_steps_that_do_not_lower_the_energy(monkeypatch):
+    v, f = grid_sheet(5, 0.2, z=0.0)
+    r = P.rest_state(v, f)
+    pb = R._problem(r, R.SolverSettings(), None, None, None, None, None)
+    x = noisy(v, 1e-3, 0)
+    ob = R._objective(pb, x)
+    e0, _, _ = _minimize.evaluate(ob, x)
+    # a line search that "accepts" a step without moving (what rounding does at a singular
+    # bending gradient): the minimiser must stop instead of running to max_iter
+    monkeypatch.setattr(_minimize, "_line_search", lambda ob, x, e, g, d: (1e-3, x.copy(), e))
+    pre = _minimize.laplacian_factor(ob, 0.05)
+    out = _minimize.newton(ob, x, 1e-12, 1000, pre, pb.weight)
+    assert out.iterations == _minimize.STALL_STEPS
+    assert out.energy == pytest.approx(e0)
+
+
 def test_x0_is_used_and_a_solve_started_inside_the_body_ends_outside():
     """A small sheet on top of a 0.1 m ball thrown down at 4 m/s: its free fall over one frame
     (0.14 m) lands it inside, below the centre, so a solve from there pushes it out of the
