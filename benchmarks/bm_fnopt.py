@@ -4,14 +4,18 @@ Parts (each writes benchmarks/results/bm_fnopt_<part>.json and a PNG; reference 
 cached in benchmarks/results/fnopt_refs/):
 
 - ``iters``: e_CD / e_3D against ms per frame for FNOpt N in {3, 5, 8, 10, 15, 20} and
-  GD / Adam / L-BFGS (plain, and strong-Wolfe ``lbfgs-wolfe``; DCT-preconditioned descent) over
+  GD / Adam / L-BFGS (plain, and strong-Wolfe ``lbfgs-wolfe``; PCG, DCT-preconditioned descent) over
   their iteration counts, at 32, 64, 100 (Tables 6.6-6.7, Figure 6.10 analogues);
 - ``lbfgs``: the equal-error comparison (mean e_3D) of L-BFGS variants against FNOpt N = 10;
 - ``reference``: the convergence of the reference over its tolerance;
 - ``super``: FNOpt run at 64 against the 32 rollout upsampled bilinearly to 64 (Table 6.4);
 - ``general``: speed factors 1.2 / 1.5 / 2, the five handle layouts and seeded random pin sets
-  at ``--res`` (Figures 6.6-6.7);
-- ``sweep``: the width/modes sweep (from benchmarks/fnopt_sweep.py's JSON), charted.
+  at ``--res`` (Figures 6.6-6.7); the plan entry ``floor:N`` is a sensitivity row: PCG with N
+  iterations from an initial state perturbed by 0.1 mm (:data:`FLOOR_PERTURB`), whose error
+  against the reference is what the case's physics alone makes of a tiny difference (a case
+  whose floor is above 5 cannot separate optimisers by e_CD);
+- ``sweep``: the width/modes sweep (from benchmarks/fnopt_sweep.py's JSON), charted;
+- ``stability``: a long FNOpt rollout (``--frames 500 --res 100``): finite and bounded.
 
 All timings are CPU times of one thread on a shared, busy 2-core machine: ``cpu_ms_per_frame``
 is the whole rollout's process time per frame (problem set-up, the float64 energy record and
@@ -88,18 +92,23 @@ def _step(name: str, n: int, net=None, lr=None, **kw):
     return lambda p, a0: solvers.CLASSICAL[name](p, n, lr=lr)
 
 
-def _rollout(s: SimSettings, step):
+#: Initial perturbation (m) of the ``floor`` rows of the ``general`` part: a 1 m sheet's free
+#: vertices moved by 0.1 mm (Gaussian, seeded), then solved by PCG with 40 iterations.
+FLOOR_PERTURB = 1e-4
+
+
+def _rollout(s: SimSettings, step, perturb: float = 0.0):
     t0 = time.process_time()
     try:
         ro = solvers.rollout(s.sheet(), s.material, s.handles, s.motion, s.frames, step,
-                             s.speed)
+                             s.speed, perturb=perturb)
     except ValueError as exc:          # diverged
         return None, str(exc), time.process_time() - t0
     return ro, None, time.process_time() - t0
 
 
-def _measure(s: SimSettings, step, ref, every: int) -> dict:
-    ro, err, cpu = _rollout(s, step)
+def _measure(s: SimSettings, step, ref, every: int, perturb: float = 0.0) -> dict:
+    ro, err, cpu = _rollout(s, step, perturb)
     if ro is None:
         return {"diverged": err, "cpu_ms_per_frame": 1e3 * cpu / s.frames}
     m = frame_metrics(ro, ref, every)
@@ -119,7 +128,7 @@ def part_iters(args, net) -> dict:
            "reference_cpu_s": time.process_time() - t0,
            "reference_tol_m_s2": solvers.REFERENCE_TOL, "runs": []}
     plan = [("fnopt", n) for n in (3, 5, 8, 10, 15, 20)] + \
-        [("fnopt-line", 10)] + [("pcg", n) for n in (5, 10, 20)] + \
+        [("pcg", n) for n in (5, 10, 20)] + \
         [("pgd", n) for n in (10, 30)] + \
         [("lbfgs-wolfe", n) for n in (20, 50, 100, 200)] + \
         [("lbfgs", n) for n in (10, 30, 100, 200)] + \
@@ -173,7 +182,10 @@ def part_general(args, net) -> dict:
             n = int(n)
             if name.startswith("fnopt") and net is None:
                 continue
-            r = _measure(s, _step(name, n, net), ref, args.every)
+            if name == "floor":         # sensitivity: PCG-n from a 0.1 mm perturbed start
+                r = _measure(s, _step("pcg", n), ref, args.every, FLOOR_PERTURB)
+            else:
+                r = _measure(s, _step(name, n, net), ref, args.every)
             r.update(layout=layout, motion=motion, speed=speed, optimizer=name, iters=n)
             rec["runs"].append(r)
             print(json.dumps(r), flush=True)
@@ -226,6 +238,32 @@ def part_lbfgs(args, net) -> dict:
     return rec
 
 
+def part_stability(args, net) -> dict:
+    """A long FNOpt rollout (``--frames``, default use 500) at ``--res``: finite and bounded.
+
+    Recorded: whether every state is finite, the largest distance of a vertex from the
+    handles' centroid (m; the sheet is 1 m wide), the largest edge length over its rest length
+    (stretch), the largest per-frame ``L_cloth`` and the CPU ms per frame.
+    """
+    s = SimSettings(res=(args.res, args.res), handles=args.layout, motion=args.motion,
+                    frames=args.frames, speed=args.speed)
+    ro, err, cpu = _rollout(s, _step("fnopt", 10, net))
+    if ro is None:
+        return {"diverged": err}
+    x = ro.positions
+    sheet = s.sheet()
+    hmid = ro.handles.mean(1)
+    eu = (x[:, :, 1:] - x[:, :, :-1]).norm(dim=-1) / sheet.hx
+    ev = (x[:, 1:] - x[:, :-1]).norm(dim=-1) / sheet.hy
+    return {"res": args.res, "layout": args.layout, "motion": args.motion,
+            "speed": args.speed, "frames": args.frames,
+            "finite": bool(torch.isfinite(x).all()),
+            "max_distance_from_handles_m": float((x - hmid[:, None, None]).norm(dim=-1).max()),
+            "max_edge_stretch": float(max(eu.max(), ev.max())),
+            "max_L_cloth": float(np.max(ro.loss)), "cpu_ms_per_frame": 1e3 * cpu / s.frames,
+            "step_cpu_ms": float(np.mean(ro.cpu_ms))}
+
+
 def part_reference(args, net) -> dict:
     """Convergence of the reference: rollouts solved to decreasing tolerances, compared.
 
@@ -275,16 +313,27 @@ def chart_iters(rec: dict, path: Path) -> None:
             curves[f"{name} (N={','.join(str(r['iters']) for r in rs)})"] = \
                 [r["e_cd"] for r in rs]
             xs[list(curves)[-1]] = [r["cpu_ms_per_frame"] for r in rs]
+    _loglog_chart(curves, xs, path, "CPU ms per frame (1 thread, shared machine)",
+                  "e_CD x 1e3 vs converged reference",
+                  f"{rec['res']}x{rec['res']}, {rec.get('layout', 'corners')}, {rec['motion']}, "
+                  f"{rec['frames']} frames",
+                  hline=5.0)
+
+
+def _loglog_chart(curves: dict, xs: dict, path: Path, xlabel: str, ylabel: str, title: str,
+                  hline: float | None = None) -> None:
+    """Log-log line chart of ``curves[k]`` over ``xs[k]`` (markers, legend), PNG at ``path``."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
     for k, y in curves.items():
         ax.plot(xs[k], y, marker="o", label=k)
     ax.set_xscale("log")
     ax.set_yscale("log")
-    ax.axhline(5.0, color="gray", ls="--", lw=0.8)
-    ax.set_xlabel("CPU ms per frame (1 thread, shared machine)")
-    ax.set_ylabel("e_CD x 1e3 vs converged reference")
-    ax.set_title(f"{rec['res']}x{rec['res']}, corners, {rec['motion']}, {rec['frames']} frames")
+    if hline is not None:
+        ax.axhline(hline, color="gray", ls="--", lw=0.8)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     fig.tight_layout()
@@ -295,7 +344,7 @@ def chart_iters(rec: dict, path: Path) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--part", choices=("iters", "super", "general", "sweep", "lbfgs",
-                                       "reference"),
+                                       "reference", "stability"),
                     default="iters")
     ap.add_argument("--res", type=int, default=32)
     ap.add_argument("--frames", type=int, default=60)
@@ -332,8 +381,11 @@ def main() -> None:
         curves = {f"w{r['width']} m{r['modes']} ({r['parameters'] // 1000}k)":
                   [h["val_subopt"] for h in r["history"]] for r in rec["runs"]}
         xs = {k: [h["step"] for h in r["history"]] for k, r in zip(curves, rec["runs"])}
-        curves["DCT-preconditioned descent (no FNO)"] = [rec["pgd_baseline_subopt"]] * 2
-        xs["DCT-preconditioned descent (no FNO)"] = [0, rec["steps"]]
+        for key, lab in (("pgd_baseline_subopt", "DCT-preconditioned descent (no FNO)"),
+                         ("pcg_baseline_subopt", "PCG: the subspace step without the FNO")):
+            if key in rec:
+                curves[lab] = [rec[key]] * 2
+                xs[lab] = [0, rec["steps"]]
         viz.plot_curves(curves, OUT / "bm_fnopt_sweep.png", x=xs, xlabel="training step",
                         ylabel="validation sub-optimality (N=10)", logy=True, markers=True,
                         title="FNOpt width/modes sweep (32x32)")
@@ -341,7 +393,8 @@ def main() -> None:
     rec = {"part": args.part, "args": vars(args), "torch": torch.__version__,
            "note": "CPU times, 1 thread, shared busy 2-core machine"}
     rec.update({"iters": part_iters, "super": part_super, "general": part_general,
-                "lbfgs": part_lbfgs, "reference": part_reference}[args.part](args, net))
+                "lbfgs": part_lbfgs, "reference": part_reference,
+                "stability": part_stability}[args.part](args, net))
     rec.update(machine=platform.processor() or platform.machine(), python=platform.python_version(),
                date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                load_average=os.getloadavg())
@@ -364,19 +417,12 @@ def main() -> None:
         curves = {lay: [r["max_vertex_m"] for r in rec["runs"] if r["layout"] == lay]
                   for lay in lays}
         xs = {lay: [r["tol"] for r in rec["runs"] if r["layout"] == lay] for lay in lays}
-        plt = _plt()
-        fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
-        for lay in lays:
-            ax.loglog(xs[lay], [max(v, 1e-7) for v in curves[lay]], marker="o", label=lay)
-        ax.axhline(1e-3, color="gray", ls="--", lw=0.8)
-        ax.set_xlabel("tolerance (RMS residual, m/s^2)")
-        ax.set_ylabel("max vertex distance to the 10x tighter rollout (m)")
-        ax.set_title(f"reference convergence, {args.res}x{args.res}, {args.frames} frames")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
-        fig.tight_layout()
-        fig.savefig(OUT / f"bm_fnopt_{tag}.png")
-        plt.close(fig)
+        curves = {k: [max(v, 1e-7) for v in c] for k, c in curves.items()}
+        _loglog_chart(curves, xs, OUT / f"bm_fnopt_{tag}.png",
+                      "tolerance (RMS residual, m/s^2)",
+                      "max vertex distance to the 10x tighter rollout (m)",
+                      f"reference convergence, {args.res}x{args.res}, {args.frames} frames",
+                      hline=1e-3)
     elif args.part == "general":
         rs = [r for r in rec["runs"] if "e_cd" in r]
         names = sorted({r["optimizer"] for r in rs})

@@ -80,7 +80,8 @@ def run_train(args: argparse.Namespace) -> int:
     record = {"config": {k: s_ for k, s_ in asdict(res["model"].config).items()},
               "settings": res["settings"], "parameters": res["parameters"],
               "command": "polygeo train-fnopt " + " ".join(sys.argv[2:]),
-              "minutes": res["minutes"], "steps": res["step"], "finished": res["finished"],
+              "minutes": res["minutes"], "cpu_minutes": res["cpu_minutes"],
+              "steps": res["step"], "finished": res["finished"],
               "val_subopt": res["val_subopt"], "history": hist,
               "torch": torch.__version__, "threads": args.threads,
               "date": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime())}

@@ -21,7 +21,8 @@ from . import cloth
 from .handles import DT, trajectory
 
 __all__ = ["StepProblem", "make_problem", "laplace_preconditioner", "solve_pgd", "solve_pcg",
-           "solve_gd", "solve_adam", "solve_lbfgs", "solve_lbfgs_wolfe", "solve_reference",
+           "subspace_solve", "solve_gd", "solve_adam", "solve_lbfgs", "solve_lbfgs_wolfe",
+           "solve_reference",
            "Rollout", "rollout", "CLASSICAL", "REFERENCE_TOL"]
 
 #: Tolerance of the converged reference: RMS residual ``M^-1 dL/da / dt^2`` over the free
@@ -135,26 +136,21 @@ class StepProblem:
     def subspace_step(self, g: torch.Tensor, dirs: list, hvp) -> torch.Tensor:
         """Minimiser of the quadratic model of ``L`` over the span of ``dirs``.
 
-        ``dirs``: ``k`` directions ``(B, H, W, 3)``; returns the step ``sum_i c_i d_i``. The
-        ``k x k`` model Hessian ``D^T H D`` is solved in its eigenbasis, dropping eigen-directions
-        whose curvature is not positive (up to ``1e-9`` of the largest) and the ones along which
-        the step would climb, so a zero or repeated direction is harmless and the step never
-        increases the quadratic model. With the single direction ``d`` this is
-        :meth:`exact_step` (when the curvature along ``d`` is positive).
+        ``dirs``: ``k`` directions ``(B, H, W, 3)``; returns the step ``sum_i c_i d_i`` with the
+        coefficients of :func:`subspace_solve` (a zero or repeated direction is harmless and
+        the step never increases the quadratic model). With the single direction ``d`` this
+        is :meth:`exact_step` (when the curvature along ``d`` is positive).
         """
-        d = torch.stack(dirs, 1)                                    # (B, k, H, W, 3)
+        hd = self.hessian_products(dirs, hvp)
+        c, _ = subspace_solve(g, dirs, hd)
+        return torch.einsum("bi,ibhwc->bhwc", c.to(g.dtype), torch.stack(dirs))
+
+    def hessian_products(self, dirs: list, hvp) -> list:
+        """``[H d for d in dirs]``, in one batched double-backward pass when available."""
         many = getattr(hvp, "many", None) if self.batched_hvp else None
-        hd = many(dirs).transpose(0, 1) if many is not None else \
-            torch.stack([hvp(di) for di in dirs], 1)
-        a = torch.einsum("bihwc,bjhwc->bij", d, hd)
-        a = 0.5 * (a + a.transpose(1, 2))
-        rhs = -torch.einsum("bhwc,bihwc->bi", g, d)
-        lam, v = torch.linalg.eigh(a)
-        keep = lam > 1e-9 * lam.abs().amax(1, keepdim=True).clamp(min=1e-300)
-        inv = torch.where(keep, 1.0 / torch.where(keep, lam, torch.ones_like(lam)),
-                          torch.zeros_like(lam))
-        c = torch.einsum("bij,bj,bkj,bk->bi", v, inv, v, rhs)
-        return torch.einsum("bi,bihwc->bhwc", c, d)
+        if many is not None:
+            return list(many(dirs).unbind(0))
+        return [hvp(di) for di in dirs]
 
     def precondition(self, g: torch.Tensor) -> torch.Tensor:
         """The residual ``M^-1 g / dt^2`` (m/s^2)."""
@@ -164,6 +160,54 @@ class StepProblem:
         """RMS ``(B,)`` over the free vertices' residual components."""
         n = (self.free.expand(r.shape[:-1] + (1,)).sum((1, 2, 3)) * 3).clamp(min=1)
         return ((r * self.free).square().sum((1, 2, 3)) / n).sqrt()
+
+
+def subspace_solve(g: torch.Tensor, dirs: list, hd: list, sub: int | None = None):
+    """Coefficients ``c`` ``(B, k)`` minimising the quadratic model over a span, and its value.
+
+    The model is ``m(c) = g . D c + 1/2 c^T (D^T H D) c`` with ``D = [d_1 .. d_k]`` and
+    ``hd[i] = H d_i``; it is solved in float64 after scaling each direction to unit curvature
+    (Jacobi), with the shift ``mu = 2 max(0, -lambda_min) + eps`` (``eps`` 1e-5 for float32
+    inputs, 1e-12 for float64: the rounding level of their Hessian products): with a positive
+    definite model this is its exact minimiser over the span (up to ``eps``), with negative
+    curvature a regularised step; in both cases ``m(c) <= 0``, so the step never increases the
+    model, and a zero or repeated direction gets no weight of its own. Differentiable (the
+    FNO is trained through it). ``sub``: also solve over the first ``sub`` directions alone.
+
+    Returns
+    -------
+    c : torch.Tensor
+        ``(B, k)`` float64 coefficients (``(B, sub)`` ones zero-padded when ``sub`` is given,
+        as a second pair).
+    m : torch.Tensor
+        ``(B,)`` float64 model value ``m(c)`` (J); with ``sub``, ``((c, m), (c_sub, m_sub))``.
+    """
+    d = torch.stack(dirs, 1).double()                           # (B, k, H, W, 3)
+    h = torch.stack(hd, 1).double()
+    a = torch.einsum("bihwc,bjhwc->bij", d, h)
+    a = 0.5 * (a + a.transpose(1, 2))
+    rhs = -torch.einsum("bhwc,bihwc->bi", g.double(), d)
+    eps = 1e-12 if g.dtype == torch.float64 else 1e-5
+
+    def solve(a, rhs):
+        diag = torch.diagonal(a, dim1=1, dim2=2).abs()
+        big = diag.amax(1, keepdim=True).clamp(min=1e-300)
+        inv = torch.where(diag > 1e-14 * big, diag.clamp(min=1e-300).rsqrt(),
+                          torch.zeros_like(diag))               # zero direction: weight 0
+        s = inv[:, :, None] * a * inv[:, None, :]
+        lam = torch.linalg.eigvalsh(s.detach())
+        mu = 2 * (-lam[:, :1]).clamp(min=0) + eps
+        eye = torch.eye(s.shape[1], dtype=s.dtype)
+        y = torch.linalg.solve(s + mu[:, :, None] * eye, (inv * rhs)[..., None])[..., 0]
+        c = inv * y
+        m = -(rhs * c).sum(1) + 0.5 * torch.einsum("bi,bij,bj->b", c, a, c)
+        return c, m
+
+    full = solve(a, rhs)
+    if sub is None:
+        return full
+    cs, ms = solve(a[:, :sub, :sub], rhs[:, :sub])
+    return full, (torch.cat([cs, torch.zeros_like(full[0][:, sub:])], 1), ms)
 
 
 def make_problem(x_prev, v_prev, idx, target, hx, hy, material: dict, dt: float = DT,
@@ -467,12 +511,14 @@ class Rollout:
 def rollout(sheet: cloth.Sheet, material: cloth.Material, layout, motion: str, frames: int,
             step: Callable, speed: float = 1.0, dt: float = DT, orientation: str = "vertical",
             repulsion: float = 0.0, warm_start: bool = False, dtype=torch.float32,
-            progress: Callable | None = None) -> Rollout:
+            progress: Callable | None = None, perturb: float = 0.0) -> Rollout:
     """Simulate ``frames`` steps from rest; ``step(problem, a_prev) -> a`` solves each step.
 
     ``warm_start``: ``a_prev`` is the previous frame's acceleration (else ``None``: the
     solver starts from zero, Algorithm 2). ``repulsion``: weight (J) of eq. (28) with
-    ``delta`` the grid spacing (0: off). ``progress``: called after each frame.
+    ``delta`` the grid spacing (0: off). ``progress``: called after each frame. ``perturb``:
+    standard deviation (m) of Gaussian noise (seed 0) added to the free vertices' initial
+    positions, for sensitivity studies (0: off).
 
     Raises
     ------
@@ -483,6 +529,10 @@ def rollout(sheet: cloth.Sheet, material: cloth.Material, layout, motion: str, f
     idx = cloth.handle_indices(layout, h, w)
     x = cloth.rest_positions(sheet, orientation, torch.float64)[None]
     traj = trajectory(x[0, idx[:, 0], idx[:, 1]], motion, frames, speed, dt)
+    if perturb > 0:
+        noise = torch.randn(x.shape, generator=torch.Generator().manual_seed(0),
+                            dtype=torch.float64)
+        x = x + perturb * noise * (1.0 - cloth.handle_mask(idx, h, w, torch.float64))[..., None]
     x = x.to(dtype)
     v = torch.zeros_like(x)
     mat = material.tensors(1, dtype)

@@ -2,8 +2,10 @@
 
 The pool holds sheets *in the middle of their inner optimisation*: a state ``(x, v)``, its
 handles and their motion, the current acceleration ``a``, the previous residual and update,
-and the inner-iteration count. A training step takes a batch of pool entries, lets the FNO make
-one update, and minimises the normalised decrease of ``L_cloth``::
+and the inner-iteration count. A training step takes a batch of pool entries, makes
+one update with the step used at inference (:func:`draping.fnopt.model.subspace_update`: the
+quadratic model minimised over the PCG directions and the FNO's proposal, differentiated
+through), and minimises the normalised decrease of ``L_cloth``::
 
     (L(a + Delta a) - L(a)) / (1/2 sum_i |dL/da_i|^2 / (m_i dt^2))
 
@@ -29,7 +31,7 @@ import torch
 
 from . import cloth
 from .handles import DT, ease
-from .model import FNO, FNOConfig, fnopt_iteration, n_parameters, solve_fnopt
+from .model import FNO, FNOConfig, n_parameters, solve_fnopt, subspace_update
 from .solvers import (
     StepProblem,
     laplace_preconditioner,
@@ -71,11 +73,14 @@ class TrainSettings:
     size_max: float = 1.5
     reset_prob: float = 0.02
     handles: str = "random"
+    step_rule: str = "subspace"
     seed: int = 0
     eval_every: int = 1000
     checkpoint_every: int = 500
 
     def __post_init__(self) -> None:
+        if self.step_rule != "subspace":
+            raise ValueError(f"step_rule: expected 'subspace', got {self.step_rule!r}")
         if self.handles not in HANDLE_DISTRIBUTIONS:
             raise ValueError(f"handles: expected one of {list(HANDLE_DISTRIBUTIONS)}, got "
                              f"{self.handles!r}")
@@ -263,8 +268,11 @@ def train_step(model: FNO, opt, pool: Pool, s: TrainSettings, step: int) -> floa
     p, target = pool.problem(ids)
     a = pool.a[ids]
     pre = laplace_preconditioner(p)
-    a_new, z, da, g = fnopt_iteration(model, p, pre, a, pool.r_prev[ids], pool.da[ids],
-                                      create_graph=True)
+    _, g, hvp = p.grad_hvp(a)
+    z = pre(g) * p.free
+    da = subspace_update(model, p, g, hvp, z, pool.r_prev[ids], pool.da[ids],
+                         create_graph=True)[0]
+    a_new = a + da
     p64, _ = pool.problem(ids, torch.float64)
     with torch.no_grad():
         l0 = p64.loss(a.double())
@@ -368,6 +376,7 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
     ck = runs.resume_state(out, fp)
     history: list = []
     elapsed = 0.0
+    cpu_elapsed = 0.0
     if ck is None:
         pool = Pool(s, gen)
         step = 0
@@ -381,6 +390,7 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
         gen.set_state(ck.tensors["gen"])
         torch.set_rng_state(ck.tensors["torch_rng"])
         step, history, elapsed = ck.meta["step"], ck.meta["history"], ck.meta["elapsed"]
+        cpu_elapsed = ck.meta.get("cpu_elapsed", 0.0)
         log(f"resumed at step {step} ({elapsed / 60:.1f} min so far)")
     t_val = time.perf_counter()
     val = validation_set(s.res)
@@ -389,9 +399,10 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
     jlog = runs.JsonlLog(out / "log.jsonl")
     bar = runs.progress(total=s.steps, initial=step, desc="train-fnopt", quiet=quiet)
     t0 = time.perf_counter() - elapsed
+    c0 = time.process_time() - cpu_elapsed
     ema = None
-    pool_keys = ("x", "v", "a", "r_prev", "da", "hmask", "hrest", "kind", "vec", "duration",
-                 "t", "size", "it", "n_inner", "frame", "max_frame", "mat")
+    pool_keys = ("x", "v", "a", "r_prev", "da", "hmask", "hrest", "kind", "vec",
+                 "duration", "t", "size", "it", "n_inner", "frame", "max_frame", "mat")
 
     def save():
         runs.save_checkpoint(out / runs.CHECKPOINT_NAME, {
@@ -399,7 +410,8 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
             "pool": {k: getattr(pool, k) for k in pool_keys},
             "gen": gen.get_state(), "torch_rng": torch.get_rng_state()},
             {"fingerprint": fp, "step": step, "history": history,
-             "elapsed": time.perf_counter() - t0, "settings": asdict(s)})
+             "elapsed": time.perf_counter() - t0, "cpu_elapsed": time.process_time() - c0,
+             "settings": asdict(s)})
 
     stopped = False
     while step < s.steps:
@@ -412,7 +424,8 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
         if step % s.eval_every == 0 or step == s.steps:
             v = evaluate(model, val)
             rec = {"step": step, "loss_ema": ema, "val_subopt": v,
-                   "minutes": (time.perf_counter() - t0) / 60}
+                   "minutes": (time.perf_counter() - t0) / 60,
+                   "cpu_minutes": (time.process_time() - c0) / 60}
             history.append(rec)
             jlog.append(rec)
             log(f"step {step}: loss {ema:.4f}  validation sub-optimality (N=10) {v:.4f}")
@@ -426,7 +439,9 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
     bar.close()
     jlog.close()
     minutes = (time.perf_counter() - t0) / 60
+    cpu_minutes = (time.process_time() - c0) / 60
     torch.save(model.state_dict(), out / "model.pt")
-    return {"settings": asdict(s), "step": step, "minutes": minutes, "history": history,
+    return {"settings": asdict(s), "step": step, "minutes": minutes,
+            "cpu_minutes": cpu_minutes, "history": history,
             "parameters": n_parameters(model), "finished": not stopped,
             "val_subopt": history[-1]["val_subopt"] if history else None, "model": model}

@@ -1,0 +1,188 @@
+"""FNOpt's subspace step against the classical PCG step it is built on; training through it."""
+
+from dataclasses import fields
+
+import pytest
+import torch
+
+from draping.fnopt import cloth, model, solvers
+from draping.fnopt.cloth import Material, Sheet
+
+torch.set_num_threads(1)
+
+
+class _Quadratic(solvers.StepProblem):
+    """``L(a) = 1/2 a^T A a - b^T a`` on the free vertices of a step problem (float64).
+
+    ``A``: the inertia ``m dt^2`` plus grid-edge springs that couple the three coordinates
+    anisotropically (a 3x3 SPD matrix ``C``), so the isotropic DCT preconditioner is not exact
+    and PCG needs its iterations; ``b`` random.
+    """
+
+    def loss(self, a: torch.Tensor) -> torch.Tensor:
+        a = self.compose(a)
+        m = self.mass[..., None] * self.dt * self.dt
+        du = a[:, 1:] - a[:, :-1]
+        dv = a[:, :, 1:] - a[:, :, :-1]
+        springs = ((du @ self.coupling) * du).sum((1, 2, 3)) + \
+            ((dv @ self.coupling) * dv).sum((1, 2, 3))
+        return 0.5 * (m * a * a).sum((1, 2, 3)) + 0.5 * self.k * springs - \
+            (self.b * a).sum((1, 2, 3))
+
+
+def _quadratic(seed=0, res=(12, 10)):
+    sheet = Sheet(*res)
+    x = cloth.rest_positions(sheet, dtype=torch.float64)[None]
+    idx = cloth.handle_indices("corner-centre", *res)
+    p = solvers.make_problem(x, torch.zeros_like(x), idx, x[:, idx[:, 0], idx[:, 1]],
+                             sheet.hx, sheet.hy, Material().tensors(1, torch.float64))
+    q = _Quadratic(**{f.name: getattr(p, f.name) for f in fields(p)})
+    g = torch.Generator().manual_seed(seed)
+    rot = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))[0]
+    q.coupling = rot @ torch.diag(torch.tensor([1.0, 0.02, 6.0], dtype=torch.float64)) @ rot.T
+    q.k = float(p.mass.mean()) * p.dt ** 2 * 400.0
+    q.b = torch.randn(x.shape, generator=g, dtype=torch.float64) * float(p.mass.mean()) * \
+        p.dt ** 2 * 10.0
+    return q
+
+
+def _net(seed=0, gain=1.0):
+    torch.manual_seed(seed)
+    net = model.FNO(model.FNOConfig(width=8, modes=4, layers=2, projection=8)).double()
+    with torch.no_grad():
+        net.proj2.weight.mul_(gain)
+    return net
+
+
+def _zero_net():
+    net = _net()
+    with torch.no_grad():
+        net.proj2.weight.zero_()
+        net.proj2.bias.zero_()
+    return net
+
+
+def _cloth_problem(dtype=torch.float64):
+    sheet = Sheet(12, 12)
+    ro = solvers.rollout(sheet, Material(), "diagonal", "xyz", 6,
+                         lambda p, a0: solvers.solve_pcg(p, 10), speed=2.0, dtype=dtype)
+    idx = cloth.handle_indices("diagonal", 12, 12)
+    x = ro.positions[-2][None]
+    v = (ro.positions[-2] - ro.positions[-3])[None] / solvers.DT
+    return solvers.make_problem(x, v, idx, ro.positions[-1][None][:, idx[:, 0], idx[:, 1]],
+                                sheet.hx, sheet.hy, Material().tensors(1, dtype))
+
+
+@pytest.mark.parametrize("problem", ["quadratic", "cloth"])
+def test_a_zero_fno_output_reproduces_pcg(problem):
+    p = _quadratic() if problem == "quadratic" else _cloth_problem()
+    for n in (1, 4, 10):
+        a_pcg = solvers.solve_pcg(p, n)
+        a_fn = model.solve_fnopt(_zero_net(), p, n)
+        assert torch.allclose(a_fn, a_pcg, rtol=1e-7, atol=1e-7 * float(a_pcg.abs().max()))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_random_fno_step_is_never_worse_than_the_pcg_step_on_a_quadratic(seed):
+    p = _quadratic(seed)
+    net = _net(seed, gain=300.0)                    # proposals as large as the residual
+    g0 = torch.Generator().manual_seed(10 + seed)
+    pre = solvers.laplace_preconditioner(p)
+    for _ in range(3):
+        a = torch.randn(p.x_prev.shape, generator=g0, dtype=torch.float64) * p.free
+        da_prev = torch.randn(a.shape, generator=g0, dtype=torch.float64) * p.free
+        z_prev = torch.randn(a.shape, generator=g0, dtype=torch.float64) * p.free
+        val, g, hvp = p.grad_hvp(a)
+        z = pre(g) * p.free
+        with torch.no_grad():
+            da, da_pcg, m, m_pcg = model.subspace_update(net, p, g, hvp, z, z_prev, da_prev)
+        # the classical step is solve_pcg's: the model minimiser over (-z, previous update)
+        assert torch.allclose(da_pcg, p.subspace_step(g, [-z * p.free, da_prev], hvp),
+                              rtol=1e-8, atol=1e-12 * float(da_pcg.abs().max()))
+        l_fn, l_pcg = float(p.loss(a + da)[0]), float(p.loss(a + da_pcg)[0])
+        assert l_fn <= l_pcg + 1e-10 * abs(float(val[0]))
+        assert l_pcg < float(val[0])
+        # on a quadratic the model is the function: its predicted decreases are exact
+        assert float(m[0]) == pytest.approx(l_fn - float(val[0]), rel=1e-6)
+        assert float(m_pcg[0]) == pytest.approx(l_pcg - float(val[0]), rel=1e-6)
+        # the proposal helps: a random direction lowers the model strictly
+        assert l_fn < l_pcg
+
+
+def test_a_useless_proposal_gets_no_weight(monkeypatch):
+    p = _quadratic(3)
+    a = torch.zeros_like(p.x_prev)
+    val, g, hvp = p.grad_hvp(a)
+    z = solvers.laplace_preconditioner(p)(g) * p.free
+    da_prev = 0.1 * z
+    for useless in (lambda z, d: -3.0 * z, lambda z, d: 2.0 * d - 0.5 * z,
+                    lambda z, d: torch.zeros_like(z)):
+        monkeypatch.setattr(model, "fno_correction",
+                            lambda net, p, z, z_prev, d, f=useless: f(z, d))
+        da, da_pcg, m, m_pcg = model.subspace_update(None, p, g, hvp, z, z, da_prev)
+        assert torch.allclose(da, da_pcg, rtol=1e-8, atol=1e-10 * float(da_pcg.abs().max()))
+        assert float(m[0]) == pytest.approx(float(m_pcg[0]), rel=1e-9)
+
+
+def test_the_guard_keeps_every_iteration_at_least_as_good_as_the_pcg_model():
+    # quadratic: nothing to replace; nonlinear cloth with wild proposals: monotone decrease
+    info = {}
+    model.solve_fnopt(_net(0, gain=300.0), _quadratic(), 10, info=info)
+    assert info["replaced"] == 0
+    p = _cloth_problem()
+    net = _net(1, gain=3000.0)
+    losses = [float(p.loss(torch.zeros_like(p.x_prev))[0])]
+    for n in range(1, 9):
+        losses.append(float(p.loss(model.solve_fnopt(net, p, n))[0]))
+    assert all(b <= a + 1e-12 * abs(a) for a, b in zip(losses, losses[1:]))
+    # unguarded, the same proposals are only as good as the quadratic model
+    assert float(p.loss(model.solve_fnopt(net, p, 8, guard=False))[0]) < losses[0]
+
+
+def test_subspace_solve_edge_cases():
+    p = _quadratic()
+    _, g, hvp = p.grad_hvp(torch.zeros_like(p.x_prev))
+    d = -g / p.mass[..., None]
+    z = torch.zeros_like(d)
+    # zero direction: no weight, no NaN; a negative-curvature model still gets m <= 0
+    c, m = solvers.subspace_solve(g, [d, z], [hvp(d), hvp(z)])
+    assert bool(torch.isfinite(c).all()) and float(c[0, 1]) == 0.0 and float(m[0]) < 0
+    c, m = solvers.subspace_solve(g, [d], [-hvp(d)])
+    assert bool(torch.isfinite(c).all()) and float(m[0]) <= 0.0
+
+
+def test_meta_training_step_differentiates_through_the_subspace_step():
+    from draping.fnopt.train import Pool, TrainSettings, train_step
+
+    s = TrainSettings(width=4, modes=2, layers=1, projection=4, res=8, pool=4, batch=2,
+                      steps=3)
+    gen = torch.Generator().manual_seed(0)
+    pool = Pool(s, gen)
+    torch.manual_seed(0)
+    net = model.FNO(model.FNOConfig(4, 2, 1, 4))
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+    before = [q.detach().clone() for q in net.parameters()]
+    for k in range(3):
+        loss = train_step(net, opt, pool, s, k)
+        assert loss == loss and abs(loss) < 1e6           # finite
+    moved = [bool((q.detach() != b).any()) for q, b in zip(net.parameters(), before)]
+    assert all(moved)                                      # every weight got a gradient
+    with pytest.raises(ValueError, match="step_rule"):
+        TrainSettings(step_rule="line")
+
+
+def test_rollout_perturbation_moves_free_vertices_only():
+    sheet = Sheet(8, 8)
+
+    def step(p, a0):
+        return solvers.solve_pcg(p, 3)
+
+    ro0 = solvers.rollout(sheet, Material(), "corners", "xy", 2, step)
+    ro1 = solvers.rollout(sheet, Material(), "corners", "xy", 2, step, perturb=1e-3)
+    idx = cloth.handle_indices("corners", 8, 8)
+    d0 = (ro1.positions[0] - ro0.positions[0]).norm(dim=-1)
+    assert float(d0[idx[:, 0], idx[:, 1]].max()) == 0.0
+    assert 1e-4 < float(d0.max()) < 1e-2
+    assert torch.equal(ro0.handles, ro1.handles)
+    assert torch.equal(ro0.positions, solvers.rollout(sheet, Material(), "corners", "xy", 2,
+                                                      step).positions)
