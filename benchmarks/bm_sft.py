@@ -362,7 +362,76 @@ def memory_run(data: Path, frames: int) -> dict:
     }
 
 
-def main(argv: list[str] | None = None) -> int:
+def summarise(results: list[dict], chosen: list, sweep_kinds: list[str]) -> tuple:
+    """``(aggregate, frontier, targets)`` of the runs: per configuration means over the sweep
+    kinds, the Pareto fronts of both methods (CPU s, e_3D ratio) and the per-sequence targets of
+    the base PolySfT configurations against the per-vertex baseline of the same run."""
+    # aggregate per configuration over the sweep kinds (every configuration ran on them)
+    agg = {}
+    for label, fam, st, _ in chosen:
+        rs = [r for r in results if r["config"] == label and r["kind"] in sweep_kinds]
+        if not rs:  # --from-partial: not run yet
+            continue
+        agg[label] = {
+            "method": fam,
+            "settings": st,
+            "ratio": float(np.mean([r["ratio"] for r in rs])),
+            "e_3d": float(np.mean([r["e_3d"] for r in rs])),
+            "e_n": float(np.mean([r["e_n"] for r in rs])),
+            "seconds": float(np.mean([r["seconds"] for r in rs])),
+            "cpu_seconds": float(np.mean([r["cpu_seconds"] for r in rs])),
+            "iterations": float(np.mean([r["iterations"] for r in rs])),
+        }
+    fronts = {
+        m: frontier([(v["cpu_seconds"], v["ratio"]) for v in agg.values() if v["method"] == m])
+        for m in ("polysft", "vertex")
+    }
+    # baseline's final accuracy = its best ratio; time for PolySfT to reach it
+    vbest_label = min(
+        (k for k, v in agg.items() if v["method"] == "vertex"), key=lambda k: agg[k]["ratio"]
+    )
+    vbest = agg[vbest_label]
+    reach = [v for v in agg.values() if v["method"] == "polysft" and v["ratio"] <= vbest["ratio"]]
+    t_reach = min((v["cpu_seconds"] for v in reach), default=float("nan"))
+    # per-sequence targets of the base PolySfT configuration
+    vert_rows = {r["kind"]: r for r in results if r["config"] == "vertex base"}
+    base_rows = [r for r in results
+                 if r["config"] in ("polysft base", "polysft patches 4", "polysft patches 1",
+                                    "polysft no refit")
+                 and r["kind"] in vert_rows]
+    targets = {
+        "per_sequence": [
+            {
+                "config": r["config"],
+                "kind": r["kind"],
+                "patches": r.get("patches"),
+                "ratio_visible": r.get("ratio_visible", float("nan")),
+                "e_n_visible": r.get("e_n_visible", float("nan")),
+                "max_hidden_fraction": max(r.get("hidden_fraction", [float("nan")])),
+                "ratio": r["ratio"],
+                "e_n": r["e_n"],
+                "seconds": r["seconds"],
+                "cpu_seconds": r["cpu_seconds"],
+                "ratio_ok": r["ratio"] <= 0.25,
+                "e_n_ok": r["e_n"] <= 5.0,
+                "time_ok_cpu": r["cpu_seconds"] <= 10.0,
+                "time_ok_wall": r["seconds"] <= 10.0,
+                "vertex_ratio": vert_rows[r["kind"]]["ratio"],
+                "vertex_e_n": vert_rows[r["kind"]]["e_n"],
+                "vertex_cpu_seconds": vert_rows[r["kind"]]["cpu_seconds"],
+            }
+            for r in base_rows
+        ],
+        "baseline_best_config": vbest_label,
+        "baseline_best_ratio": vbest["ratio"],
+        "baseline_best_cpu_seconds": vbest["cpu_seconds"],
+        "polysft_cpu_seconds_to_reach_it": t_reach,
+        "time_ratio_polysft_over_baseline": t_reach / vbest["cpu_seconds"],
+    }
+    return agg, fronts, targets
+
+
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="2 sequences, fewer frames and configs")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
@@ -400,6 +469,11 @@ def main(argv: list[str] | None = None) -> int:
         "settings and sequence) and run only the others (a full run is ~100 CPU minutes: it "
         "can be finished over several sessions)",
     )
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = _parser()
     a = ap.parse_args(argv)
 
     _worker_setup(a.threads)
@@ -466,68 +540,7 @@ def main(argv: list[str] | None = None) -> int:
                 record(r)
             mem = mem_async.get() if mem_async is not None else None
 
-    # aggregate per configuration over the sweep kinds (every configuration ran on them)
-    agg = {}
-    for label, fam, st, _ in chosen:
-        rs = [r for r in results if r["config"] == label and r["kind"] in sweep_kinds]
-        if not rs:  # --from-partial: not run yet
-            continue
-        agg[label] = {
-            "method": fam,
-            "settings": st,
-            "ratio": float(np.mean([r["ratio"] for r in rs])),
-            "e_3d": float(np.mean([r["e_3d"] for r in rs])),
-            "e_n": float(np.mean([r["e_n"] for r in rs])),
-            "seconds": float(np.mean([r["seconds"] for r in rs])),
-            "cpu_seconds": float(np.mean([r["cpu_seconds"] for r in rs])),
-            "iterations": float(np.mean([r["iterations"] for r in rs])),
-        }
-    fronts = {
-        m: frontier([(v["cpu_seconds"], v["ratio"]) for v in agg.values() if v["method"] == m])
-        for m in ("polysft", "vertex")
-    }
-    # baseline's final accuracy = its best ratio; time for PolySfT to reach it
-    vbest_label = min(
-        (k for k, v in agg.items() if v["method"] == "vertex"), key=lambda k: agg[k]["ratio"]
-    )
-    vbest = agg[vbest_label]
-    reach = [v for v in agg.values() if v["method"] == "polysft" and v["ratio"] <= vbest["ratio"]]
-    t_reach = min((v["cpu_seconds"] for v in reach), default=float("nan"))
-    # per-sequence targets of the base PolySfT configuration
-    vert_rows = {r["kind"]: r for r in results if r["config"] == "vertex base"}
-    base_rows = [r for r in results
-                 if r["config"] in ("polysft base", "polysft patches 4", "polysft patches 1",
-                                    "polysft no refit")
-                 and r["kind"] in vert_rows]
-    targets = {
-        "per_sequence": [
-            {
-                "config": r["config"],
-                "kind": r["kind"],
-                "patches": r.get("patches"),
-                "ratio_visible": r.get("ratio_visible", float("nan")),
-                "e_n_visible": r.get("e_n_visible", float("nan")),
-                "max_hidden_fraction": max(r.get("hidden_fraction", [float("nan")])),
-                "ratio": r["ratio"],
-                "e_n": r["e_n"],
-                "seconds": r["seconds"],
-                "cpu_seconds": r["cpu_seconds"],
-                "ratio_ok": r["ratio"] <= 0.25,
-                "e_n_ok": r["e_n"] <= 5.0,
-                "time_ok_cpu": r["cpu_seconds"] <= 10.0,
-                "time_ok_wall": r["seconds"] <= 10.0,
-                "vertex_ratio": vert_rows[r["kind"]]["ratio"],
-                "vertex_e_n": vert_rows[r["kind"]]["e_n"],
-                "vertex_cpu_seconds": vert_rows[r["kind"]]["cpu_seconds"],
-            }
-            for r in base_rows
-        ],
-        "baseline_best_config": vbest_label,
-        "baseline_best_ratio": vbest["ratio"],
-        "baseline_best_cpu_seconds": vbest["cpu_seconds"],
-        "polysft_cpu_seconds_to_reach_it": t_reach,
-        "time_ratio_polysft_over_baseline": t_reach / vbest["cpu_seconds"],
-    }
+    agg, fronts, targets = summarise(results, chosen, sweep_kinds)
     record = {
         "benchmark": "sft",
         "quick": quick,
