@@ -1,6 +1,6 @@
 """Benchmark of the draping foundation: reference-solver speed against accuracy.
 
-Run ``python benchmarks/bm_drape.py [--sections solver,skinning,collision,newton] [--quick]
+Run ``python benchmarks/bm_drape.py [--sections solver,skinning,collision,newton,walk] [--quick]
 [--out DIR]``. Writes
 ``bm_drape.json`` and one PNG chart per section (``bm_drape_<section>.png``) into
 ``benchmarks/results``. Each section is one function; ``--sections`` picks them.
@@ -15,6 +15,13 @@ distance (mean and max over vertices, mm) of the last frame to a tight reference
 (``newton``, tol 1e-4; 1e-3 for 10k vertices). The cloth buckles as it wraps the sphere, so
 the energy has many local minima: two solvers may stop in different wrinkle patterns, which the
 distance shows.
+
+Section ``walk``: the stopping tolerance on the reference's real job, the 5,000-vertex T-shirt
+on the walk (60 frames): the sequence is draped once with the default solver, then every
+dynamic frame is solved again from the same previous state at tolerances ``WALK_TOLS`` and at
+``WALK_TIGHT``; recorded per frame and tolerance: CPU seconds, iterations, eps metrics and the
+distance to the tight solve (mean and max over vertices, mm); the chart puts CPU seconds
+against distance and shows the spread of CPU seconds per frame.
 
 Section ``skinning``: CPU seconds and peak traced memory (``tracemalloc``) of the nearest,
 Laplacian and RBF garment weights (:mod:`draping.skinning`) of T-shirts of about 2k, 5k and 10k
@@ -148,6 +155,122 @@ def chart_solver(data: dict, path: Path) -> None:
         ax.set_xlabel("CPU seconds per frame (1 thread)")
         ax.set_ylabel("mean distance to tight solve (mm)")
         ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# ------------------------------------------------------------------ tolerance on the walk
+
+#: Tolerances of the walk section and the tight solve the others are measured against.
+WALK_TOLS = (3e-3, 1e-2, 2e-2, 5e-2)
+WALK_TIGHT = 1e-4
+
+
+def section_walk(quick: bool, save, garment: str = "tshirt") -> dict:
+    """Stopping tolerance against cost and accuracy on the reference's real job.
+
+    The 5,000-vertex T-shirt on the walk (``polygeo drape-reference --garment tshirt --motion
+    walk``): the sequence is draped once with the default solver; then every dynamic frame is
+    solved again from the same previous state at each tolerance and at ``WALK_TIGHT``, and each
+    solve's distance to the tight one (mean and max over vertices, mm), CPU seconds,
+    iterations and eps metrics are recorded (a per-frame replay: the solver's error over one
+    step, without the drift of a whole sequence that starts from different states).
+    """
+    import dataclasses
+
+    import torch
+
+    from draping import drape, reference
+    from draping.collision import MeshQuery
+    from draping.outputs import frame_metrics
+
+    torch.set_num_threads(1)
+    frames = 8 if quick else 60
+    job = drape.DrapeJob(garment=garment, motion="walk", frames=frames)
+    scene = drape.prepare(job)
+    base = drape.DEFAULT_SOLVER
+    states = [(fr.x, fr.v) for fr in drape.drape_frames(scene, base)]
+    data = {"garment": garment, "frames": frames, "vertices": int(scene.rest.n_vertices),
+            "default_tol": base.tol, "tight_tol": WALK_TIGHT, "tols": list(WALK_TOLS),
+            "rows": []}
+    query = MeshQuery(scene.body_vertices[0], scene.body_faces)
+    g = scene.garment
+    for t in range(1, frames):
+        query.update(scene.body_vertices[t])
+        xp, vp = states[t - 1]
+        x0 = drape.initial_guess(scene, t, xp, vp, query, base)
+        motion = scene.skinned[t] - scene.skinned[t - 1]
+        out = {}
+        for tol in (WALK_TIGHT, *WALK_TOLS):
+            st = dataclasses.replace(base, tol=tol)
+            c0 = time.process_time()
+            res = reference.drape_step(scene.rest, xp, vp, scene.dt, query, st, x0=x0,
+                                       body_motion=motion)
+            cpu = time.process_time() - c0
+            m = frame_metrics(res.x, g.vertices, g.faces, distance=query.query(res.x).distance)
+            out[tol] = (res, cpu, m)
+        x_tight = out[WALK_TIGHT][0].x.numpy()
+        for tol, (res, cpu, m) in out.items():
+            d = np.linalg.norm(res.x.numpy() - x_tight, axis=1) * 1e3
+            data["rows"].append({
+                "frame": t, "tol": tol, "cpu_seconds": cpu, "iterations": res.iterations,
+                "converged": bool(res.converged), "eps_e": m["eps_e"], "eps_c": m["eps_c"],
+                "dist_to_tight_mm_mean": float(d.mean()), "dist_to_tight_mm_max": float(d.max()),
+            })
+        print(f"walk frame {t}: " + ", ".join(
+            f"{tol:g} {cpu:.2f} s" for tol, (_, cpu, _) in out.items()), flush=True)
+        data["summary"] = _walk_summary(data["rows"])
+        save(data)
+    return data
+
+
+def _walk_summary(rows: list) -> list:
+    out = []
+    for tol in sorted({r["tol"] for r in rows}):
+        rr = [r for r in rows if r["tol"] == tol]
+        cpu = np.array([r["cpu_seconds"] for r in rr])
+        out.append({
+            "tol": tol, "frames": len(rr), "cpu_s_mean": float(cpu.mean()),
+            "cpu_s_median": float(np.median(cpu)), "cpu_s_max": float(cpu.max()),
+            "iterations_mean": float(np.mean([r["iterations"] for r in rr])),
+            "all_converged": bool(all(r["converged"] for r in rr)),
+            "dist_mm_mean": float(np.mean([r["dist_to_tight_mm_mean"] for r in rr])),
+            "dist_mm_max": float(max(r["dist_to_tight_mm_max"] for r in rr)),
+            "dist_mm_max_median": float(np.median([r["dist_to_tight_mm_max"] for r in rr])),
+            "eps_e_max": float(max(r["eps_e"] for r in rr)),
+            "eps_c_max": float(max(r["eps_c"] for r in rr)),
+        })
+    return out
+
+
+def chart_walk(data: dict, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    summ = [s for s in data["summary"] if s["tol"] != data["tight_tol"]]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    cpu = [s["cpu_s_mean"] for s in summ]
+    ax = axes[0]
+    ax.loglog(cpu, [s["dist_mm_mean"] for s in summ], "o-", label="mean over vertices")
+    ax.loglog(cpu, [s["dist_mm_max_median"] for s in summ], "s-",
+              label="max over vertices (median frame)")
+    ax.loglog(cpu, [s["dist_mm_max"] for s in summ], "^-", label="max over vertices (worst frame)")
+    for s in summ:
+        ax.annotate(f"tol {s['tol']:g}", (s["cpu_s_mean"], s["dist_mm_max"]), fontsize=7)
+    ax.axhline(1.0, color="gray", ls=":", lw=0.8)
+    ax.set_xlabel("CPU seconds per frame, mean (1 thread)")
+    ax.set_ylabel(f"distance to a tol {data['tight_tol']:g} solve (mm)")
+    ax.set_title(f"{data['garment']} on the walk, {data['vertices']} vertices: per-frame replay",
+                 fontsize=9)
+    ax.legend(fontsize=7)
+    ax = axes[1]
+    tols = [s["tol"] for s in data["summary"]]
+    ax.boxplot([[r["cpu_seconds"] for r in data["rows"] if r["tol"] == t] for t in tols],
+               tick_labels=[f"{t:g}" for t in tols])
+    ax.axhline(1.0, color="gray", ls=":", lw=0.8, label="target 1 s")
+    ax.set_xlabel("tolerance (residual force / weight)")
+    ax.set_ylabel("CPU seconds per dynamic frame")
+    ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -448,6 +571,7 @@ SECTIONS = {
     "skinning": (section_skinning, chart_skinning),
     "collision": (section_collision, chart_collision),
     "newton": (section_newton, chart_newton),
+    "walk": (section_walk, chart_walk),
 }
 
 
