@@ -18,6 +18,8 @@ Sections (each a function):
   for the same number of steps; per method eps_e, eps_a, eps_c (%, frame mean and max over
   all frames of all cases), E_dist (cm) and E_norm (deg) against the reference, inference CPU
   ms per frame (the model alone, and with the body posing), training CPU and wall minutes.
+* ``strain``: the methods' models on every selected case, eps_e, eps_a, eps_c only (no
+  reference solves: cheap on the ``random`` motion, where the solver is slow).
 * ``ablations``: GAPS with ``k_ext = 1`` and without L_inext (thesis Tables 4.2-4.3) on the
   T-shirt (``--ablation-garments``), same steps.
 * ``sweep``: GAPS T-shirt over GRU width x depth, same steps; parsimony = the network with
@@ -67,7 +69,7 @@ sys.path.insert(0, str(HERE.parent / "datasets"))
 import make_gaps_eval as ev  # noqa: E402
 from run_env import environment, finish  # noqa: E402
 
-SECTIONS = ("methods", "ablations", "sweep", "given", "charts")
+SECTIONS = ("methods", "strain", "ablations", "sweep", "given", "charts")
 METHOD_NAMES = ("gaps", "snug", "ncs")
 ABLATIONS = ("schedule", "one", "none")
 SWEEP = ((32, 1), (64, 1), (64, 2), (128, 2), (256, 2), (128, 4))
@@ -247,6 +249,20 @@ class Evaluator:
                 "ms_per_frame_with_posing": 1000.0 * sec["with_posing"] / max(n, 1),
                 "frames": n, "cases": rows}
 
+    def strain(self, model) -> dict:
+        """eps_e, eps_a, eps_c of a model on its garment's cases; no reference drape needed."""
+        from draping.gaps import frame_metrics
+
+        per = {k: [] for k in ("eps_e", "eps_a", "eps_c")}
+        rows = []
+        for c in self.garment_cases(model.settings.garment):
+            m = frame_metrics(self.drape(model, c), self.body)
+            for k in per:
+                per[k].extend(m[k])
+            rows.append({"case": c.label, **{k: float(np.mean(m[k])) for k in per},
+                         "eps_c_max": float(np.max(m["eps_c"]))})
+        return {**summary(per), "frames": len(per["eps_e"]), "cases": rows}
+
     def reference_summary(self, garment: str) -> dict:
         """The reference drapes' own eps metrics and solver CPU seconds per frame."""
         per = {"eps_e": [], "eps_a": [], "eps_c": []}
@@ -295,7 +311,7 @@ def plan(args, cases) -> dict:
     sec = set(args.sections)
     for g in args.garments:
         steps = budget_of(g, args.steps)
-        if "methods" in sec:
+        if {"methods", "strain"} & sec:
             for meth in METHOD_NAMES:
                 need[(g, meth)] = (train_settings(g, meth), steps, meth)
         if "ablations" in sec and g in args.ablation_garments:
@@ -357,6 +373,33 @@ def section_methods(args, ev_: Evaluator, need: dict, cache: Path) -> dict:
         out[g] = {"models": rows, "reference": ev_.reference_summary(g),
                   "steps": budget_of(g, args.steps)}
         _print_rows(g, rows)
+    return out
+
+
+def section_strain(args, ev_: Evaluator, need: dict, cache: Path) -> dict:
+    """The methods' models on every selected case, eps metrics only (no reference solves).
+
+    The reference solver is slow on the ``random`` motion (about 20 CPU s per T-shirt frame
+    against 1.4 on ``turn``); eps_e, eps_a and eps_c need only the rest garment and the body.
+    """
+    from draping.gaps import load_model, shipped_model_path
+
+    out = {}
+    for g in args.garments:
+        rows = []
+        for meth in METHOD_NAMES:
+            st, steps, label = need[(g, meth)]
+            shipped = meth == "gaps" and use_shipped(g, args)
+            p = shipped_model_path(g) if shipped else model_path(st, steps, cache)
+            rows.append({"label": label, "method": meth, "steps": steps, "model": _portable(p),
+                         **ev_.strain(load_model(p))})
+        out[g] = {"models": rows, "steps": budget_of(g, args.steps)}
+        print(f"\n{g} (eps only)")
+        for r in rows:
+            print(f"{r['label']:10s} eps_e {r['eps_e_mean']:.2f} eps_a {r['eps_a_mean']:.2f} "
+                  f"eps_c {r['eps_c_mean']:.3f} | " + " ".join(
+                      f"{c['case']} {c['eps_e']:.2f}/{c['eps_c']:.2f}" for c in r["cases"]),
+                  flush=True)
     return out
 
 
@@ -659,8 +702,8 @@ def main(argv=None) -> dict:
         _portable(a) for a in (sys.argv[1:] if argv is None else argv)),
         "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     new = {}
-    runs = {"methods": section_methods, "ablations": section_ablations, "sweep": section_sweep,
-            "given": section_given}
+    runs = {"methods": section_methods, "strain": section_strain,
+            "ablations": section_ablations, "sweep": section_sweep, "given": section_given}
     for name, fn in runs.items():
         if name in args.sections:
             r = fn(args, ev_, need, cache)
