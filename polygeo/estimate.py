@@ -250,7 +250,8 @@ def differential_quantities(
         point, the order of ``auto_orders`` and the size of ``k_candidates`` with the least
         estimated mean squared error (:mod:`polygeo._estimate_auto`), chosen apart for the
         normal and for the curvatures: variances from the fits' residuals, bias from how
-        each quantity drifts with the neighbourhood size, sizes capped where the fits of
+        each quantity drifts with the neighbourhood size (for H also the attenuation by
+        noise that small neighbourhoods suffer), sizes capped where the fits of
         nested neighbourhoods stop agreeing within ``AUTO_K_GAMMA`` standard deviations
         (ICI); every statistic pooled (median) over the ``AUTO_K_SMOOTH`` nearest neighbours,
         so that the choice does not depend on the chunk a point is processed in, nor on the

@@ -134,3 +134,44 @@ def test_pooled_median_equals_nanmedian():
     got = _pooled_median(a, pool)
     assert np.isnan(got[7]).all()
     np.testing.assert_array_equal(got, ref)
+
+
+def test_bias_rate_recovers_a_two_term_drift():
+    """bias_rate: y_s = y_0 + B t_s + C u_s recovered exactly from noiseless values; the
+    one-term fit recovers B of a pure t drift; too few well-posed sizes give NaN."""
+    from polygeo._estimate_auto import bias_rate
+
+    rng = np.random.default_rng(49)
+    S, Q = 8, 5
+    n = np.array([13, 17, 21, 25, 33, 49, 65, 97], dtype=np.float64)
+    t = n / n[0]
+    u = rng.uniform(0.5, 2.0, size=(Q, 1)) / n[None, :]
+    y0, B, C = rng.normal(size=(Q, 1)), rng.normal(size=(Q, 1)), rng.normal(size=(Q, 1))
+    v = 1.0 / n[None, :] ** 2 + np.zeros((Q, 1))
+    ok = np.ones((Q, S), dtype=bool)
+    coef, cov = bias_rate(y0 + B * t + C * u, v, ok, t, u)
+    np.testing.assert_allclose(coef, np.c_[B, C], rtol=1e-8, atol=1e-10)
+    assert (cov[:, :2] > 0).all()
+    coef1, cov1 = bias_rate(y0 + B * t, v, ok, t)
+    np.testing.assert_allclose(coef1[:, 0], B[:, 0], rtol=1e-10)
+    assert (coef1[:, 1] == 0).all() and (cov1[:, 1:] == 0).all()
+    ok2 = ok.copy()
+    ok2[:, 2:] = False  # two sizes: one difference, not enough for two coefficients
+    coef2, _ = bias_rate(y0 + B * t + C * u, v, ok2, t, u)
+    assert np.isnan(coef2).all()
+    coef3, _ = bias_rate(y0 + B * t, v, ok2, t)
+    np.testing.assert_allclose(coef3[:, 0], B[:, 0], rtol=1e-10)
+
+
+def test_noise_attenuates_small_neighbourhood_curvature():
+    """The premise of the attenuation term: under noise, a small neighbourhood's H is biased
+    towards 0 (noisy tangential coordinates), a bias that falls as the neighbourhood grows
+    (mean of the oriented H over the true H, which is the same at every point)."""
+    s = sy.sphere(4000, seed=50, noise=2e-2)
+    ratios = []
+    for k in (12, 100, 400):
+        r = differential_quantities(s.noisy_points, k=k, order=2, orient="none")
+        sign = np.sign(np.einsum("ij,ij->i", r.normals, s.normals))
+        ratios.append(float(np.mean(r.mean_curvature * sign) / np.mean(s.mean_curvature)))
+    assert ratios[0] < 0.5 < ratios[1] < ratios[2]
+    assert ratios[2] > 0.8
