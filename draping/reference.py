@@ -98,7 +98,8 @@ class SolverSettings:
         0.85 / 0.91 mm (mean; 3.7 / 3.5 mm max) from solves at ``1e-4`` for 2025 / 5041
         vertices, 7 to 14 times faster than ``1e-3`` (0.15 / 0.04 mm). On the 5,000-vertex
         T-shirt of the walk (``bm_drape.py --sections walk``: each of the 59 dynamic frames
-        solved again from the same state at each tolerance; one thread, load about 6), CPU s
+        solved again from the same state at each tolerance; one thread, load about 6; inner
+        solves then by an Eisenstat-Walker forcing term, as fast there as today's), CPU s
         per frame mean (max) and distance to a ``1e-4`` solve, mean over vertices / max over
         vertices on the median frame: ``3e-3`` 1.03 (2.14) s, 0.004 / 0.14 mm; ``1e-2`` 0.77
         (1.38) s, 0.010 / 0.35 mm; ``2e-2`` 0.64 (1.11) s, 0.017 / 0.52 mm; ``5e-2`` 0.53 (1.03)

@@ -207,19 +207,15 @@ def test_capped_inner_solves_reach_the_same_drape(hessian):
     assert capped.energy == pytest.approx(full.energy, rel=1e-2)
 
 
-def test_forcing_term_follows_eisenstat_walker():
+def test_forcing_term_is_loose_far_from_and_tightens_near_convergence():
     ft = _minimize.forcing_term
-    assert ft(1.0, None, 0.5, 1e-6) == 0.5  # first step: the cap
-    # fast convergence (|g| fell 10x): 0.9 * 0.1^2, the safeguard 0.9 * 0.01^2 is below 0.1
-    assert ft(0.1, 1.0, 0.01, 1e-9) == pytest.approx(0.009)
-    # slow convergence (|g| fell 2 %): the cap
-    assert ft(0.98, 1.0, 0.5, 1e-9) == 0.5
-    # safeguard: a previous forcing term of 0.4 keeps it at 0.9 * 0.16 = 0.144
-    assert ft(0.1, 1.0, 0.4, 1e-9) == pytest.approx(0.144)
-    # never more accurate than the stopping rule can see: 0.5 * tol_abs / |g|
-    assert ft(1e-3, 1.0, 0.01, 1e-4) == pytest.approx(0.05)
-    for args in [(1.0, 1.0, 0.5, 1e-3), (1e-8, 1.0, 1e-6, 1e-12), (5.0, 1.0, 0.5, 1.0)]:
-        assert 0 < ft(*args) <= 0.5
+    assert ft(1.0, 1.0) == 0.5  # residual force = the weight: the cap
+    assert ft(0.03, 1.0) == 0.5  # 3 sqrt(0.03) = 0.52 > cap
+    assert ft(1e-2, 1.0) == pytest.approx(0.3)  # 3 sqrt(1e-2)
+    assert ft(1e-4, 2.0) == pytest.approx(3 * np.sqrt(5e-5))
+    # scale-free: only the ratio |g| / |M g| counts
+    assert ft(2e-3, 0.5) == pytest.approx(ft(4e-5, 1e-2))
+    assert ft(1e-2, 1.0, cap=0.2) == 0.2 and ft(1e-2, 1.0, scale=1.0) == pytest.approx(0.1)
 
 
 def test_tight_dynamic_solve_meets_the_rule_by_autograd():
