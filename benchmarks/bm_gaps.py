@@ -290,7 +290,8 @@ def model_record(path: Path, ev_: Evaluator, label: str) -> dict:
     from draping.gaps import load_model
 
     m = load_model(path)
-    tr = m.record.get("training", {})
+    # a model trained in several runs (e.g. fine-tuned) records their sum as total_training
+    tr = m.record.get("total_training", m.record.get("training", {}))
     n_par = sum(p.numel() for p in m.parameters())
     n_gru = sum(p.numel() for p in m.gru.parameters())
     return {"label": label, "garment": m.settings.garment, "method": m.settings.method,
