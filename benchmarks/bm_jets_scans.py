@@ -144,20 +144,26 @@ def inside(P, k=BOUNDARY_K, offset=BOUNDARY_OFFSET) -> np.ndarray:
     return np.linalg.norm(c, axis=1) < offset * rms
 
 
-def compare(res, sel, ref_n, ref_h, j) -> dict:
-    """Errors of an estimate at the points ``sel`` against the reference at vertices ``j``."""
+def compare(res, sel, ref_n, ref_h, j, ref_nj=None) -> dict:
+    """Errors of an estimate at the points ``sel`` against the reference at vertices ``j``
+    (``ref_nj``: the normals of the reference's own jet, a second normal reference)."""
     n = np.asarray(res.normals)[sel]
     nr = ref_n[j]
     dot = np.einsum("ij,ij->i", n, nr)
     ang = np.degrees(np.arccos(np.clip(np.abs(dot), 0.0, 1.0)))
     h = np.asarray(res.mean_curvature)[sel] * np.sign(np.where(dot == 0, 1.0, dot))
     hr = ref_h[j]
-    return {"normal_median_deg": float(np.median(ang)),
-            "normal_p90_deg": float(np.percentile(ang, 90)),
-            "H_err_over_median_H": float(np.median(np.abs(h - hr)) / np.median(np.abs(hr)))}
+    out = {"normal_median_deg": float(np.median(ang)),
+           "normal_p90_deg": float(np.percentile(ang, 90)),
+           "H_err_over_median_H": float(np.median(np.abs(h - hr)) / np.median(np.abs(hr)))}
+    if ref_nj is not None:
+        dj = np.abs(np.einsum("ij,ij->i", n, ref_nj[j]))
+        out["normal_median_deg_jet_ref"] = float(np.median(np.degrees(np.arccos(
+            np.clip(dj, 0.0, 1.0)))))
+    return out
 
 
-def run_scan(name, P, V, ref_n, ref_h, settings, log=print) -> dict:
+def run_scan(name, P, V, ref_n, ref_h, settings, log=print, ref_nj=None) -> dict:
     """Every setting on the scan ``P`` (already in the reference frame)."""
     from scipy.spatial import cKDTree
 
@@ -176,7 +182,7 @@ def run_scan(name, P, V, ref_n, ref_h, settings, log=print) -> dict:
                "flagged": int((np.asarray(r.status)[sel] != 0).sum()),
                "median_neighbours": float(np.median(np.asarray(r.n_neighbors)[sel])),
                "order_histogram": np.bincount(np.asarray(r.order)[sel], minlength=5).tolist(),
-               **compare(r, sel, ref_n, ref_h, j[sel])}
+               **compare(r, sel, ref_n, ref_h, j[sel], ref_nj)}
         out["rows"].append(row)
         log(f"  {name} k={k} order={order}: normal {row['normal_median_deg']:.3f} deg, "
             f"H {row['H_err_over_median_H']:.3f}, {cpu:.1f} CPU s")
@@ -202,14 +208,17 @@ def scans_section(scan_dir, log=print) -> dict:
         np.einsum("ij,ij->i", np.asarray(ref.normals), ref_n))
     settings = [(20, 2), ("auto", "auto")] + [s for s in FIXED]
     record = {"reference": {"file": "bun_zipper.ply", "vertices": int(len(V)),
-                            "triangles": int(len(F)), "normals": "area-weighted face normals",
+                            "triangles": int(len(F)),
+                            "normals": "area-weighted face normals (1-ring; "
+                                       "normal_median_deg_jet_ref: the jet's below)",
                             "H": f"jet k={REF_JET['k']} order={REF_JET['order']} on its "
                                  "vertices, oriented by its faces"},
               "selection": {"max_gap_m": MAX_GAP, "boundary_k": BOUNDARY_K,
                             "boundary_offset": BOUNDARY_OFFSET},
               "scans": []}
     P0 = read_xyz_lines(d / "bun000.ply")
-    record["scans"].append(run_scan("bun000", P0, V, ref_n, ref_h, settings, log))
+    ref_nj = np.asarray(ref.normals)
+    record["scans"].append(run_scan("bun000", P0, V, ref_n, ref_h, settings, log, ref_nj))
     P1 = read_xyz_lines(d / "bun045.ply")
     t, q = BUN045_CONF
     t = np.asarray(t)
@@ -222,7 +231,7 @@ def scans_section(scan_dir, log=print) -> dict:
     R0 = quat_matrix(q) if conv == "R(q)" else quat_matrix(q).T
     R, tt, hist = icp_point_to_plane(P1, V, ref_n, R0, t)
     rot = np.degrees(np.arccos(np.clip((np.trace(R.T @ R0) - 1) / 2, -1, 1)))
-    scan = run_scan("bun045", P1 @ R.T + tt, V, ref_n, ref_h, settings, log)
+    scan = run_scan("bun045", P1 @ R.T + tt, V, ref_n, ref_h, settings, log, ref_nj)
     scan["alignment"] = {"conf_convention": f"x -> {conv} x + t",
                          "conf_median_gap_m": gaps,
                          "conf_rms_point_to_plane_m": hist[0],
