@@ -46,7 +46,7 @@ def main() -> None:
         s = TrainSettings(width=w, modes=m, steps=args.steps, eval_every=args.steps // 4,
                           checkpoint_every=args.steps // 4)
         t0 = time.perf_counter()
-        r = train(s, Path(args.work) / cfg, quiet=True, log=lambda *_: None)
+        r = train(s, Path(args.work) / cfg, quiet=True, log=lambda *_: None, val=val)
         ms = []
         for c in val[:4]:
             t1 = time.process_time()

@@ -361,8 +361,11 @@ def evaluate(model: FNO, val: list[dict], iters: int = 10) -> float:
 
 
 def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
-          max_minutes: float | None = None, log=print) -> dict:
-    """Train (or resume) in ``out_dir``; returns a summary (see ``polygeo train-fnopt``)."""
+          max_minutes: float | None = None, log=print, val: list | None = None) -> dict:
+    """Train (or resume) in ``out_dir``; returns a summary (see ``polygeo train-fnopt``).
+
+    ``val``: the :func:`validation_set` (computed here when not given; a sweep passes one).
+    """
     from polygeo import runs
 
     out = Path(out_dir)
@@ -393,7 +396,7 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
         cpu_elapsed = ck.meta.get("cpu_elapsed", 0.0)
         log(f"resumed at step {step} ({elapsed / 60:.1f} min so far)")
     t_val = time.perf_counter()
-    val = validation_set(s.res)
+    val = validation_set(s.res) if val is None else val
     log(f"validation set: {len(val)} steps ({time.perf_counter() - t_val:.0f} s); "
         f"model {n_parameters(model)} parameters")
     jlog = runs.JsonlLog(out / "log.jsonl")
