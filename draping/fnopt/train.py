@@ -50,10 +50,12 @@ class TrainSettings:
     """Settings of ``polygeo train-fnopt`` (the fingerprint of a resumable run).
 
     The defaults reproduce the shipped ``draping/data/fnopt_model.pt``: width 16 and 8 modes
-    from the parsimony sweep (``benchmarks/fnopt_sweep.py``: widths 16 and 32 with 8 modes and
-    width 32 with 4 modes reached the same validation sub-optimality), 7000 steps, handle sets
-    drawn by :func:`random_handles` (``handles="random"``; ``"corners-interior"`` was the
-    distribution of the first weights).
+    from the parsimony sweep (``benchmarks/fnopt_sweep.py``, run with the earlier line-step
+    training: widths 16 and 32 with 8 modes and width 32 with 4 modes reached the same
+    validation sub-optimality), 7000 steps, handle sets drawn by :func:`random_handles`
+    (``handles="random"``; ``"corners-interior"`` was the distribution of the first weights),
+    the subspace step (``step_rule``, the only rule: :func:`draping.fnopt.model.subspace_update`
+    differentiated through).
     """
 
     width: int = 16
