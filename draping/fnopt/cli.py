@@ -32,7 +32,7 @@ def _res(s: str) -> tuple[int, int]:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``train-fnopt`` to the ``polygeo`` sub-parsers."""
-    from .train import TrainSettings
+    from .settings import TrainSettings
 
     p = sub.add_parser(
         "train-fnopt",
@@ -43,7 +43,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "(config, command, minutes, figures). Copy both into draping/data/ to ship them.",
     )
     p.add_argument("-o", "--out", required=True, help="run folder")
-    g = p.add_argument_group("settings (defaults: draping.fnopt.train.TrainSettings)")
+    g = p.add_argument_group("settings (defaults: draping.fnopt.settings.TrainSettings)")
     for f in fields(TrainSettings):
         g.add_argument("--" + f.name.replace("_", "-"), dest=f.name,
                        type=type(f.default), default=f.default,
@@ -93,9 +93,7 @@ def run_train(args: argparse.Namespace) -> int:
 
 def register_simulate(sub: argparse._SubParsersAction) -> None:
     """Add ``simulate``."""
-    from .cloth import LAYOUTS
-    from .handles import MOTIONS
-    from .simulate import OPTIMIZERS
+    from .settings import LAYOUTS, MOTIONS, OPTIMIZERS
 
     p = sub.add_parser(
         "simulate",

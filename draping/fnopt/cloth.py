@@ -30,6 +30,8 @@ from dataclasses import dataclass
 
 import torch
 
+from .settings import LAYOUTS
+
 __all__ = [
     "Material",
     "Sheet",
@@ -54,16 +56,6 @@ __all__ = [
 
 #: Gravitational acceleration, m/s^2 (along -z).
 GRAVITY = 9.81
-
-#: Handle layouts as fractional grid coordinates ``(row, col)`` in ``[0, 1]`` (row 0: top edge).
-LAYOUTS: dict[str, tuple[tuple[float, float], ...]] = {
-    "corners": ((0.0, 0.0), (0.0, 1.0)),
-    "diagonal": ((0.0, 0.0), (1.0, 1.0)),
-    "mid-edges": ((0.5, 0.0), (0.5, 1.0)),
-    "corner-centre": ((0.0, 0.0), (0.5, 0.5)),
-    "single": ((0.0, 0.5),),
-    "single-centre": ((0.5, 0.5),),
-}
 
 #: Log-uniform material ranges (the authors'): stretch, shear in N/m, bend in mJ.
 MATERIAL_RANGES = {"stretch": (100.0, 1000.0), "shear": (1.0, 100.0), "bend": (0.01, 10.0)}

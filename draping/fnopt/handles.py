@@ -12,6 +12,8 @@ import math
 
 import torch
 
+from .settings import MOTIONS
+
 __all__ = ["MOTIONS", "FPS", "DT", "BASE_DURATION", "AMPLITUDE", "ANGLE",
            "check_motion", "ease", "handle_targets", "trajectory"]
 
@@ -32,9 +34,6 @@ _DIRS = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0),
 #: (the normal of the hanging sheet), each through the handles' centroid.
 _AXES = {"rot-a": (0.0, 0.0, 1.0), "rot-b": (0.0, 1.0, 0.0)}
 
-#: Motion names accepted by :func:`handle_targets`.
-MOTIONS = ("x", "y", "z", "xy", "xyz", "x-rev", "y-rev", "z-rev", "xy-rev", "xyz-rev",
-           "rot-a", "rot-b", "rot-a-rev", "rot-b-rev", "still")
 
 
 def check_motion(motion: str) -> str:

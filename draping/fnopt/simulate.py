@@ -19,13 +19,11 @@ import torch
 from ..metrics import relative_vertex_error
 from . import cloth
 from .handles import DT, check_motion
+from .settings import OPTIMIZERS
 from .solvers import CLASSICAL, REFERENCE_TOL, Rollout, rollout, solve_reference
 
 __all__ = ["SimSettings", "OPTIMIZERS", "DEFAULT_LR", "step_function", "run", "e_cd",
            "frame_metrics", "reference_rollout", "write_outputs"]
-
-#: Optimisers of ``polygeo simulate``.
-OPTIMIZERS = ("fnopt", "gd", "adam", "lbfgs", "reference")
 
 #: Default step sizes (mass metric): stable hand-picked values (GD diverges above ~1e-2 on stiff
 #: sheets); ``benchmarks/bm_fnopt.py`` reports their errors.

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import torch
@@ -32,6 +32,7 @@ import torch
 from . import cloth
 from .handles import DT, ease
 from .model import FNO, FNOConfig, n_parameters, solve_fnopt, subspace_update
+from .settings import HANDLE_DISTRIBUTIONS, TrainSettings
 from .solvers import (
     StepProblem,
     laplace_preconditioner,
@@ -43,53 +44,6 @@ from .solvers import (
 
 __all__ = ["TrainSettings", "HANDLE_DISTRIBUTIONS", "random_handles", "Pool", "train",
            "validation_set", "evaluate"]
-
-
-@dataclass(frozen=True)
-class TrainSettings:
-    """Settings of ``polygeo train-fnopt`` (the fingerprint of a resumable run).
-
-    The defaults reproduce the shipped ``draping/data/fnopt_model.pt``: width 16 and 8 modes
-    from the parsimony sweep (``benchmarks/fnopt_sweep.py``, run with the earlier line-step
-    training: widths 16 and 32 with 8 modes and width 32 with 4 modes reached the same
-    validation sub-optimality), 7000 steps, handle sets drawn by :func:`random_handles`
-    (``handles="random"``; ``"corners-interior"`` was the distribution of the first weights),
-    the subspace step (``step_rule``, the only rule: :func:`draping.fnopt.model.subspace_update`
-    differentiated through).
-    """
-
-    width: int = 16
-    modes: int = 8
-    layers: int = 4
-    projection: int = 64
-    res: int = 32
-    pool: int = 64
-    batch: int = 8
-    steps: int = 7000
-    lr: float = 1e-3
-    lr_final: float = 1e-4
-    inner_min: int = 5
-    inner_max: int = 15
-    max_frames: int = 240
-    size_min: float = 0.3
-    size_max: float = 1.5
-    reset_prob: float = 0.02
-    handles: str = "random"
-    step_rule: str = "subspace"
-    seed: int = 0
-    eval_every: int = 1000
-    checkpoint_every: int = 500
-
-    def __post_init__(self) -> None:
-        if self.step_rule != "subspace":
-            raise ValueError(f"step_rule: expected 'subspace', got {self.step_rule!r}")
-        if self.handles not in HANDLE_DISTRIBUTIONS:
-            raise ValueError(f"handles: expected one of {list(HANDLE_DISTRIBUTIONS)}, got "
-                             f"{self.handles!r}")
-
-
-#: Handle distributions of the training pool (see :func:`random_handles`).
-HANDLE_DISTRIBUTIONS = ("random", "corners-interior")
 
 
 def random_handles(gen: torch.Generator, res: int, kind: str = "random") -> torch.Tensor:

@@ -34,6 +34,7 @@ PLUGIN = CODE.replace('("torch", "numba", "scipy", "sft", "draping", "trimesh")'
     (["sft", "--help"], 0), (["sft", "--bogus"], 2), (["train-stn", "--help"], 0),
     (["drape", "--help"], 0), (["drape", "--bogus"], 2), (["train-drape", "--help"], 0),
     (["drape-reference", "--help"], 0), (["demo", "--help"], 0),
+    (["train-fnopt", "--help"], 0), (["simulate", "--help"], 0), (["simulate", "--bogus"], 2),
 ])
 def test_plugin_help_and_argument_errors_import_no_torch(argv, rc):
     # the plug-ins (sft, draping) may import their own light modules, never torch or numba:

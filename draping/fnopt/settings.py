@@ -1,0 +1,77 @@
+"""Settings and names of FNOpt that the command line needs, importable without torch.
+
+The one home of :class:`TrainSettings` (``polygeo train-fnopt``), the handle layouts
+``LAYOUTS``, the handle motions ``MOTIONS`` and the optimiser names ``OPTIMIZERS`` of
+``polygeo simulate``; :mod:`draping.fnopt.train`, :mod:`~draping.fnopt.cloth`,
+:mod:`~draping.fnopt.handles` and :mod:`~draping.fnopt.simulate` re-export them. Kept free of
+torch so that ``polygeo train-fnopt --help`` and ``polygeo simulate --help`` answer at once.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+__all__ = ["TrainSettings", "HANDLE_DISTRIBUTIONS", "LAYOUTS", "MOTIONS", "OPTIMIZERS"]
+
+#: Handle layouts as fractional grid coordinates ``(row, col)`` in ``[0, 1]`` (row 0: top edge).
+LAYOUTS: dict[str, tuple[tuple[float, float], ...]] = {
+    "corners": ((0.0, 0.0), (0.0, 1.0)),
+    "diagonal": ((0.0, 0.0), (1.0, 1.0)),
+    "mid-edges": ((0.5, 0.0), (0.5, 1.0)),
+    "corner-centre": ((0.0, 0.0), (0.5, 0.5)),
+    "single": ((0.0, 0.5),),
+    "single-centre": ((0.5, 0.5),),
+}
+
+#: Motion names accepted by :func:`draping.fnopt.handles.handle_targets`.
+MOTIONS = ("x", "y", "z", "xy", "xyz", "x-rev", "y-rev", "z-rev", "xy-rev", "xyz-rev",
+           "rot-a", "rot-b", "rot-a-rev", "rot-b-rev", "still")
+
+#: Optimisers of ``polygeo simulate``.
+OPTIMIZERS = ("fnopt", "gd", "adam", "lbfgs", "reference")
+
+#: Handle distributions of the training pool (see :func:`draping.fnopt.train.random_handles`).
+HANDLE_DISTRIBUTIONS = ("random", "corners-interior")
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """Settings of ``polygeo train-fnopt`` (the fingerprint of a resumable run).
+
+    The defaults reproduce the shipped ``draping/data/fnopt_model.pt``: width 16 and 8 modes
+    from the parsimony sweep (``benchmarks/fnopt_sweep.py``, run with the earlier line-step
+    training: widths 16 and 32 with 8 modes and width 32 with 4 modes reached the same
+    validation sub-optimality), 7000 steps, handle sets drawn by :func:`random_handles`
+    (``handles="random"``; ``"corners-interior"`` was the distribution of the first weights),
+    the subspace step (``step_rule``, the only rule: :func:`draping.fnopt.model.subspace_update`
+    differentiated through).
+    """
+
+    width: int = 16
+    modes: int = 8
+    layers: int = 4
+    projection: int = 64
+    res: int = 32
+    pool: int = 64
+    batch: int = 8
+    steps: int = 7000
+    lr: float = 1e-3
+    lr_final: float = 1e-4
+    inner_min: int = 5
+    inner_max: int = 15
+    max_frames: int = 240
+    size_min: float = 0.3
+    size_max: float = 1.5
+    reset_prob: float = 0.02
+    handles: str = "random"
+    step_rule: str = "subspace"
+    seed: int = 0
+    eval_every: int = 1000
+    checkpoint_every: int = 500
+
+    def __post_init__(self) -> None:
+        if self.step_rule != "subspace":
+            raise ValueError(f"step_rule: expected 'subspace', got {self.step_rule!r}")
+        if self.handles not in HANDLE_DISTRIBUTIONS:
+            raise ValueError(f"handles: expected one of {list(HANDLE_DISTRIBUTIONS)}, got "
+                             f"{self.handles!r}")
