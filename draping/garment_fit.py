@@ -17,6 +17,7 @@ face's winding), adjacency, orientation and vertex normals come from :mod:`polyg
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import scipy.sparse as sp
@@ -86,12 +87,18 @@ def remesh(
 
     level = max(0, int(math.ceil(math.log(max(8.0 * n_vertices / len(f), 1.0), 4))))
     mesh = pv.PolyData(v, np.hstack([np.full((len(f), 1), 3), f]).ravel())
-    clus = pyacvd.Clustering(mesh)
-    if level:
-        clus.subdivide(level)
-    np.random.seed(seed)  # noqa: NPY002 - pyacvd draws its seeds from NumPy's global state
-    clus.cluster(n_vertices)
-    out = clus.create_mesh()
+    state = np.random.get_state()  # noqa: NPY002 - pyacvd draws its seeds from NumPy's global
+    try:  # state: seed it here and give the caller's state back afterwards
+        with warnings.catch_warnings():  # pyacvd uses a deprecated pyvista accessor
+            warnings.filterwarnings("ignore", module="pyacvd")
+            clus = pyacvd.Clustering(mesh)
+            if level:
+                clus.subdivide(level)
+            np.random.seed(seed)  # noqa: NPY002
+            clus.cluster(n_vertices)
+            out = clus.create_mesh()
+    finally:
+        np.random.set_state(state)  # noqa: NPY002
     rv = np.asarray(out.points, dtype=np.float64)
     rf = np.asarray(out.faces).reshape(-1, 4)[:, 1:].astype(np.int64)
     return make_manifold(rv, rf)
