@@ -561,7 +561,7 @@ def run_robustness(timeout=180.0):
 # ------------------------------------------------------------------------------ main
 
 
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="a small subset (minutes)")
     ap.add_argument("--out", default=str(RESULTS), help="results folder")
@@ -577,6 +577,26 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", default=None,
                     help="comma-separated vertex counts of the accuracy grid (default: 10000,"
                          "100000; --quick: 10000)")
+    return ap
+
+
+def _warm_up(orders: list[int]) -> float:
+    """Seconds spent warming up (numba compilation or cache load) every timed setting."""
+    # warm-up (numba compilation / cache load) of every setting timed below, at a serial and a
+    # parallel size, so that no row times a compilation; the warm-up is reported apart
+    t_warm = time.perf_counter()
+    for n_warm in (2000, 6000):
+        warm = make_surface("torus", n_warm, 0.0)
+        for k_w, o_w in [(20, o) for o in sorted(set(orders) | {2})] + [("auto", 2), (20, "auto"),
+                                                                       ("auto", "auto")]:
+            run_polygeo(warm.points, None, k_w, o_w)
+        run_polygeo(warm.points, warm.faces, 20, 2, orient="auto")
+        numpy_baseline(warm.points, 20, 2)
+    return time.perf_counter() - t_warm
+
+
+def main(argv=None) -> int:
+    ap = _parser()
     args = ap.parse_args(argv)
     argv_ = list(sys.argv[1:] if argv is None else argv)
     start_forkserver()
@@ -634,17 +654,7 @@ def main(argv=None) -> int:
         ],
         "accuracy": [],
     }
-    # warm-up (numba compilation / cache load) of every setting timed below, at a serial and a
-    # parallel size, so that no row times a compilation; the warm-up is reported apart
-    t_warm = time.perf_counter()
-    for n_warm in (2000, 6000):
-        warm = make_surface("torus", n_warm, 0.0)
-        for k_w, o_w in [(20, o) for o in sorted(set(orders) | {2})] + [("auto", 2), (20, "auto"),
-                                                                       ("auto", "auto")]:
-            run_polygeo(warm.points, None, k_w, o_w)
-        run_polygeo(warm.points, warm.faces, 20, 2, orient="auto")
-        numpy_baseline(warm.points, 20, 2)
-    record["warmup_s"] = time.perf_counter() - t_warm
+    record["warmup_s"] = _warm_up(orders)
     print(f"warm-up (kernel compilation or cache load): {record['warmup_s']:.1f} s")
 
     sections = set(args.sections.split(","))
