@@ -62,6 +62,7 @@ for _k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
     os.environ.setdefault(_k, "1")
 
 HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent  # the repository
 RESULTS = HERE / "results"
 sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parent / "datasets"))
@@ -82,10 +83,19 @@ PARSIMONY = 0.10
 
 
 def _portable(path) -> str:
-    """A path for the record: the home directory written as ``~`` (no machine paths)."""
+    """A path for the record without machine paths: a file of this repository relative to its
+    root (``draping/data/gaps_tshirt.pt``), one under the home directory written as ``~``."""
     p = str(path)
-    home = str(Path.home())
+    root, home = str(ROOT.resolve()), str(Path.home())
+    if p.startswith(root + "/"):
+        return p[len(root) + 1:]
     return "~" + p[len(home):] if p.startswith(home + "/") else p
+
+
+def _recorded(path: str) -> Path:
+    """Inverse of :func:`_portable`: ``~`` expanded, repository paths resolved against it."""
+    q = Path(path).expanduser()
+    return q if q.is_absolute() else ROOT / q
 
 def train_settings(garment: str, method: str = "gaps", inext: str = "auto",
                    width: int | None = None, depth: int | None = None):
@@ -569,7 +579,7 @@ def strip(args, ev_: Evaluator, res: dict, cache: Path, path: Path) -> None:
     for r in res[g]["models"]:
         if r.get("not_equal_budget"):
             continue
-        d = ev_.drape(load_model(Path(r["model"]).expanduser()), case)  # recorded as ~/...
+        d = ev_.drape(load_model(_recorded(r["model"])), case)
         body_v = d.body_vertices[-1].numpy()
         meshes.append((body_v, ev_.body.faces.numpy(), d.x[-1].numpy()))
         titles.append(r["label"])

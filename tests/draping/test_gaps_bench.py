@@ -110,3 +110,14 @@ def test_case_pairs_keep_only_the_named_cases(bm, ev):
     for bad in (["turn"], ["turn/x"], ["walk/2000"]):
         with pytest.raises(ValueError, match="cases"):
             bm.keep_pairs(cases, bad)
+
+
+def test_recorded_paths_carry_no_machine_paths(bm):
+    # a shipped model is recorded relative to the repository, a cached one under ~, and both
+    # read back to the same files
+    shipped = bm.ROOT / "draping" / "data" / "gaps_tshirt.pt"
+    assert bm._portable(shipped) == "draping/data/gaps_tshirt.pt"
+    assert bm._recorded(bm._portable(shipped)) == shipped
+    cached = Path.home() / ".cache" / "polygeo" / "m.pt"
+    assert bm._portable(cached) == "~/.cache/polygeo/m.pt"
+    assert bm._recorded(bm._portable(cached)) == cached
