@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from .solvers import StepProblem
+from .solvers import StepProblem, laplace_preconditioner, subspace_solve
 
 __all__ = ["FNOConfig", "SpectralConv2d", "FNO", "features", "fno_correction", "fno_direction",
            "fnopt_iteration", "subspace_update", "solve_fnopt", "STEPS",
@@ -200,8 +200,6 @@ def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
         ``(da, da_pcg, m, m_pcg)``: the update and the classical update ``(B, H, W, 3)``
         (m/s^2), and their model decreases ``(B,)`` (J, float64, <= 0).
     """
-    from .solvers import subspace_solve
-
     f = fno_correction(model, p, z, z_prev, da_prev)
     base = [-z * p.free, da_prev]
     if create_graph:
@@ -234,8 +232,6 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
     ValueError
         On an unknown ``step``.
     """
-    from .solvers import laplace_preconditioner
-
     if step not in STEPS:
         raise ValueError(f"step: expected one of {list(STEPS)}, got {step!r}")
     pre = laplace_preconditioner(p)
