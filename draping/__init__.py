@@ -15,6 +15,7 @@ imports another method.
 - ``draping.body``, ``draping.motion``, ``draping.garments`` (+ ``garment_fit``,
   ``garment_checks``), ``draping.skinning``,
   ``draping.viz`` - the posable body, motions, garment templates, skinning and pictures.
+- ``draping.names`` - the garment, motion and phenotype names (torch-free, for the CLIs).
 - methods: ``draping.gaps``, ``draping.onefit``, ``draping.garnet``, ``draping.fnopt``.
 
 Submodules are imported explicitly (``from draping import physics``); importing ``draping``

@@ -41,6 +41,7 @@ from typing import NamedTuple, Protocol, runtime_checkable
 import numpy as np
 import torch
 
+from draping import names as _names
 from polygeo.checks import as_tensor, check_finite, check_shape
 from polygeo.frames import axis_angle_to_matrix
 
@@ -59,7 +60,7 @@ __all__ = [
     "pose_inputs",
 ]
 
-ANNY_PHENOTYPES = ("gender", "age", "muscle", "weight", "height", "proportions")
+ANNY_PHENOTYPES = _names.PHENOTYPES
 _DATA = Path(__file__).resolve().parent / "data"
 
 

@@ -10,16 +10,38 @@ import argparse
 import sys
 import tempfile
 
-__all__ = ["register", "run", "demo", "DEMO_FRAMES", "DEMO_VERTICES"]
+from .names import GARMENTS, MOTIONS, PHENOTYPES
 
-_GARMENTS = ("tshirt", "tank", "longsleeve", "dress", "skirt", "pants", "shorts")
-_MOTIONS = ("walk", "arms", "squat", "turn", "jacks", "random")
-_PHENOTYPES = ("gender", "age", "muscle", "weight", "height", "proportions")
+__all__ = ["register", "run", "demo", "add_scene_arguments", "DEMO_FRAMES", "DEMO_VERTICES"]
+
 
 #: Frames of the ``polygeo demo`` drape (a T-shirt on a walking body).
 DEMO_FRAMES = 3
 #: Garment vertices of the demo (a coarse template, made in ~10-20 s, keeps it near a minute).
 DEMO_VERTICES = 1000
+
+
+def add_scene_arguments(p: argparse.ArgumentParser, *, frames: int, seed_help: str) -> None:
+    """Add the body and motion options every drape command shares.
+
+    ``--motion``, ``--motion-file``, ``--frames`` (default ``frames``), ``--shape`` and
+    ``--seed`` (described by ``seed_help``), with the same names, units and meanings in
+    ``polygeo drape-reference`` and ``polygeo drape``.
+    """
+    p.add_argument("--motion", default="walk", metavar="NAME",
+                   help=f"procedural motion, one of {', '.join(MOTIONS)} (random: a seeded "
+                   "random smooth motion); 30 frames per second (default walk)")
+    p.add_argument("--motion-file", default=None, metavar="FILE",
+                   help="motion .npz with 'rotations' (T, 104, 3) axis-angle per Anny bone in "
+                   "radians, 'translation' (T, 3) in metres and optional 'fps' (frames per "
+                   "second, default 30); replaces --motion (default: none, use --motion)")
+    p.add_argument("--frames", type=int, default=frames, metavar="T",
+                   help=f"number of frames, >= 1 (default {frames}, i.e. {frames / 30:g} s at "
+                   "30 fps)")
+    p.add_argument("--shape", default="", metavar="NAME=V,...",
+                   help=f"body phenotypes, values in [0, 1], names among {', '.join(PHENOTYPES)}"
+                   " (others 0.5, the default adult), e.g. \"age=0.66,gender=0.2\"")
+    p.add_argument("--seed", type=int, default=0, help=seed_help)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -45,26 +67,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                '--shape "age=0.66,gender=0.2" -o OUT',
     )
     p.add_argument("--garment", default="tshirt", metavar="NAME",
-                   help=f"garment template, one of {', '.join(_GARMENTS)} (default tshirt)")
+                   help=f"garment template, one of {', '.join(GARMENTS)} (default tshirt)")
     p.add_argument("--garment-file", default=None, metavar="FILE",
                    help="garment mesh (OBJ/PLY/OFF/STL) in the rest pose of the default body, "
                    "metres; checked (manifold, consistent winding, no degenerate triangles, "
                    "outside the body); replaces --garment (default: none, use --garment)")
-    p.add_argument("--motion", default="walk", metavar="NAME",
-                   help=f"procedural motion, one of {', '.join(_MOTIONS)} (random: a seeded "
-                   "random smooth motion); 30 frames per second (default walk)")
-    p.add_argument("--motion-file", default=None, metavar="FILE",
-                   help="motion .npz with 'rotations' (T, 104, 3) axis-angle per Anny bone in "
-                   "radians, 'translation' (T, 3) in metres and optional 'fps' (frames per "
-                   "second, default 30); replaces --motion (default: none, use --motion)")
-    p.add_argument("--frames", type=int, default=30, metavar="T",
-                   help="number of frames to drape, >= 1 (default 30, i.e. 1 s at 30 fps)")
-    p.add_argument("--shape", default="", metavar="NAME=V,...",
-                   help=f"body phenotypes, values in [0, 1], names among {', '.join(_PHENOTYPES)}"
-                   " (others 0.5, the default adult), e.g. \"age=0.66,gender=0.2\"")
-    p.add_argument("--seed", type=int, default=0,
-                   help="integer seed of the random motion and of generated garments "
-                   "(with --res; default 0)")
+    add_scene_arguments(p, frames=30, seed_help="integer seed of the random motion and of "
+                        "generated garments (with --res; default 0)")
     p.add_argument("--res", type=int, default=None, metavar="N",
                    help="garment vertex count, 1000..100000 (default: the shipped 5000-vertex "
                    "template; another count generates one, ~10-20 s)")

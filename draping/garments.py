@@ -44,6 +44,7 @@ import numpy as np
 import torch
 from scipy.spatial import ConvexHull, cKDTree
 
+from draping import names as _names
 from draping.garment_checks import check_garment, crossing_pairs
 from draping.garment_fit import (
     boundary_loops,
@@ -76,7 +77,7 @@ __all__ = [
 ]
 
 #: Garment names accepted by :func:`make_garment`.
-GARMENTS = ("tshirt", "tank", "longsleeve", "dress", "skirt", "pants", "shorts")
+GARMENTS = _names.GARMENTS
 
 #: Vertex count of the templates shipped in ``draping/data`` (made for the default Anny shape
 #: by ``datasets/make_garments.py``).

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from draping import names as _names
 from draping.smpl import smpl_joint_names
 from polygeo.checks import check_finite, check_int, check_positive
 
@@ -36,7 +37,7 @@ __all__ = [
     "read_amass",
 ]
 
-MOTIONS = ("walk", "arms", "squat", "turn", "jacks", "random")
+MOTIONS = _names.MOTIONS
 
 #: Joint limits (radians) of each DOF, ``name: (low, high)``; ``_L``/``_R`` share them.
 LIMITS = {

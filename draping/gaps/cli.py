@@ -1,20 +1,20 @@
 """``polygeo train-drape`` and ``polygeo drape`` (entry-point plug-ins of ``polygeo.commands``).
 
 ``--help`` and argument errors import no torch: the method names come from the torch-free
-:mod:`draping.gaps.settings` (their one home); the garment, motion and phenotype names are
-copies of :data:`draping.garments.GARMENTS`, :data:`draping.motion.MOTIONS` and
-:data:`draping.body.ANNY_PHENOTYPES` (whose modules import torch), kept equal by a test. The
-commands import the rest when they run.
+:mod:`draping.gaps.settings`, the garment, motion and phenotype names from :mod:`draping.names`
+(their one homes), and the body and motion options from :func:`draping.cli.add_scene_arguments`
+(shared with ``polygeo drape-reference``). The commands import the rest when they run.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
+from ..cli import add_scene_arguments
+from ..names import GARMENTS
 from .settings import INEXTENSIBILITY as _INEXTENSIBILITY
 from .settings import METHODS as _METHODS
 
@@ -23,9 +23,6 @@ __all__ = [
     "check_record",
 ]
 
-_GARMENTS = ("tshirt", "tank", "longsleeve", "dress", "skirt", "pants", "shorts")
-_MOTIONS = ("walk", "arms", "squat", "turn", "jacks", "random")
-_PHENOTYPES = ("gender", "age", "muscle", "weight", "height", "proportions")
 
 
 def register_train(sub: argparse._SubParsersAction) -> None:
@@ -58,7 +55,7 @@ def register_train(sub: argparse._SubParsersAction) -> None:
                    "snug: nearest-vertex skinning, no inextensibility; "
                    "ncs: Laplacian-smoothed skinning, no inextensibility (default gaps)")
     p.add_argument("--garment", default="tshirt", metavar="NAME",
-                   help=f"garment template, one of {', '.join(_GARMENTS)} (default tshirt)")
+                   help=f"garment template, one of {', '.join(GARMENTS)} (default tshirt)")
     p.add_argument("--garment-file", default=None, metavar="FILE",
                    help="garment mesh (OBJ/PLY/OFF/STL, metres) in the rest pose of the default "
                    "body; checked (manifold, no self-intersection, outside the body)")
@@ -231,23 +228,12 @@ def register_drape(sub: argparse._SubParsersAction) -> None:
                    help="a model.pt written by polygeo train-drape (for --garment-file: one "
                    "trained for that garment; default: the shipped model of --garment)")
     p.add_argument("--garment", default="tshirt", metavar="NAME",
-                   help=f"garment template, one of {', '.join(_GARMENTS)}; shipped models: tshirt, "
+                   help=f"garment template, one of {', '.join(GARMENTS)}; shipped models: tshirt, "
                    "dress (default tshirt)")
     p.add_argument("--garment-file", default=None, metavar="FILE",
                    help="garment mesh (OBJ/PLY, metres, rest pose of the default body); needs "
                    "--model trained for it")
-    p.add_argument("--motion", default="walk", metavar="NAME",
-                   help=f"procedural motion, one of {', '.join(_MOTIONS)}; 30 fps (default walk)")
-    p.add_argument("--motion-file", default=None, metavar="FILE",
-                   help="motion .npz with 'rotations' (T, 104, 3) axis-angle in radians, "
-                   "'translation' (T, 3) in metres, optional 'fps' (default 30); replaces --motion "
-                   "(default: none)")
-    p.add_argument("--frames", type=int, default=120, metavar="T",
-                   help="number of frames, >= 1 (default 120, 4 s at 30 fps)")
-    p.add_argument("--shape", default="", metavar="NAME=V,...",
-                   help=f"body phenotypes in [0, 1], names among {', '.join(_PHENOTYPES)} (others "
-                   "0.5), e.g. \"age=0.66,gender=0.8\" (default: every phenotype 0.5)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the random motion (default 0)")
+    add_scene_arguments(p, frames=120, seed_help="integer seed of the random motion (default 0)")
     p.add_argument("--reference", action="store_true",
                    help="also run the physics reference solver on the same frames (slow: about "
                    "1-3 CPU s per frame) and add e_dist (cm) and e_norm (deg) to the metrics")
@@ -273,5 +259,4 @@ def run_drape(args: argparse.Namespace) -> int:
     print(f"{summary['frames']} frames -> {args.out}: eps_e {m['eps_e']:.2f} %  eps_a "
           f"{m['eps_a']:.2f} %  eps_c {m['eps_c']:.3f} %  {m['ms_per_frame']:.2f} CPU ms/frame"
           f"{extra}  ({time.perf_counter() - t0:.1f} s wall)")
-    json.dumps(summary["mean"])
     return 0

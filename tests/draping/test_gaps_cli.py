@@ -100,9 +100,14 @@ def test_option_choices_are_the_library_names():
         assert tuple(acts["method"].choices) == METHODS
     acts = {a.dest: a for a in sub.choices["train-drape"]._actions}
     assert tuple(acts["inextensibility"].choices) == INEXTENSIBILITY
-    # the torch-free copies in the CLI (their modules import torch) equal the library's names
+    # the library modules re-export the torch-free names the parsers use (one home each)
+    from draping import names
     from draping.body import ANNY_PHENOTYPES
-    from draping.gaps import cli
     from draping.motion import MOTIONS
 
-    assert (cli._GARMENTS, cli._MOTIONS, cli._PHENOTYPES) == (GARMENTS, MOTIONS, ANNY_PHENOTYPES)
+    assert GARMENTS is names.GARMENTS and MOTIONS is names.MOTIONS
+    assert ANNY_PHENOTYPES is names.PHENOTYPES
+    for cmd in ("drape", "drape-reference"):  # the shared body/motion options, same defaults
+        acts = {a.dest: a for a in sub.choices[cmd]._actions}
+        assert {"motion", "motion_file", "frames", "shape", "seed"} <= set(acts)
+        assert acts["motion"].default == "walk" and acts["seed"].default == 0
