@@ -11,7 +11,8 @@ offered, one per draping method that uses them:
 ``laplacian``
     The nearest-vertex weights, then iterative Laplacian smoothing over the garment's own
     edges (NCS): ``W <- (1 - alpha) W + alpha * mean of the neighbours' W``
-    (:func:`smooth_weights`, which GAPS also applies to its RBF weights).
+    (:func:`smooth_weights`). :func:`skinning_weights` applies the same smoothing after any
+    method (``smoothing=`` steps): GAPS smooths its RBF weights this way.
 ``rbf``
     GAPS's body participation (thesis eq. (34)-(36)). With ``m_i`` the distance from garment
     vertex ``g_i`` to its nearest body vertex and ``d_ij`` its distance to body vertex ``b_j``,
@@ -344,9 +345,15 @@ def skinning_weights(
     body_weights: Any,
     *,
     garment_faces: Any = None,
+    smoothing: int | None = None,
+    smoothing_alpha: float = 0.5,
     **options: Any,
 ) -> Any:
     """Garment blend weights by name: ``"nearest"``, ``"laplacian"`` or ``"rbf"``.
+
+    The method's weights, then ``smoothing`` Laplacian steps over the garment's edges
+    (:func:`smooth_weights`, the one home of the smoothing). ``"laplacian"`` is
+    ``"nearest"`` with 20 steps by default; GAPS smooths its ``"rbf"`` weights the same way.
 
     Parameters
     ----------
@@ -355,29 +362,46 @@ def skinning_weights(
     garment_vertices, body_vertices, body_weights
         As in :func:`nearest_weights`.
     garment_faces : (F, 3) int array or tensor, optional
-        Needed by ``"laplacian"``.
+        Garment triangles; needed when any smoothing is done.
+    smoothing : int, optional
+        Laplacian smoothing steps, ``>= 0`` (default: 20 for ``"laplacian"``, 0 otherwise).
+    smoothing_alpha : float
+        Step of each smoothing step, in ``(0, 1]`` (see :func:`smooth_weights`).
     **options
-        Keyword options of the chosen method (``iterations``, ``alpha``; ``width``, ``tol``).
+        Keyword options of ``"rbf"`` (``width``, ``tol``, ``chunk``); the other methods
+        take none.
 
     Returns
     -------
     (G, J) float64 array or tensor
-        Rows summing to one.
+        Rows summing to one; the array type of ``garment_vertices``.
 
     Raises
     ------
     ValueError
-        An unknown method, missing faces for ``"laplacian"``, or what the method raises.
+        An unknown method, an option the method does not take, missing faces when
+        smoothing, ``smoothing < 0``, or what the method raises.
     """
     check_choice(method, "method", SKINNING_METHODS)
-    if method == "nearest":
-        if options:
-            raise ValueError(f"options: 'nearest' takes none, got {sorted(options)}")
-        return nearest_weights(garment_vertices, body_vertices, body_weights)
-    if method == "laplacian":
-        if garment_faces is None:
-            raise ValueError("garment_faces: required by method 'laplacian'")
-        return laplacian_weights(
-            garment_vertices, garment_faces, body_vertices, body_weights, **options
-        )
-    return rbf_weights(garment_vertices, body_vertices, body_weights, **options)
+    if method == "laplacian" and {"iterations", "alpha"} & set(options):
+        raise ValueError("options: 'laplacian' takes smoothing= and smoothing_alpha= "
+                         f"(steps and step size), got {sorted(options)}")
+    if method != "rbf" and options:
+        raise ValueError(f"options: {method!r} takes none, got {sorted(options)}")
+    if smoothing is None:
+        smoothing = 20 if method == "laplacian" else 0
+    smoothing = check_int(smoothing, "smoothing", low=0)
+    smoothing_alpha = check_positive(smoothing_alpha, "smoothing_alpha")
+    if smoothing_alpha > 1:
+        raise ValueError(f"smoothing_alpha: expected a value in (0, 1], got {smoothing_alpha}")
+    if smoothing > 0 and garment_faces is None:
+        raise ValueError(f"garment_faces: required to smooth the weights (method {method!r}, "
+                         f"smoothing={smoothing})")
+    if method == "rbf":
+        w = rbf_weights(garment_vertices, body_vertices, body_weights, **options)
+    else:
+        w = nearest_weights(garment_vertices, body_vertices, body_weights)
+    w = np.asarray(w)
+    if smoothing > 0:
+        w = smooth_weights(w, garment_faces, iterations=smoothing, alpha=smoothing_alpha)
+    return _out(w, garment_vertices)

@@ -22,7 +22,7 @@ from draping.body import ANNY_PHENOTYPES, AnnyBody
 from draping.collision import MeshQuery
 from draping.garments import Garment, fit_garment_to_shape, garment, load_garment
 from draping.motion import MOTIONS, Motion, generate
-from draping.skinning import dense_body_weights, skinning_weights, smooth_weights
+from draping.skinning import dense_body_weights, skinning_weights
 from polygeo.checks import as_tensor, check_choice, check_finite, check_int, check_shape
 
 from .settings import TRAIN_MOTIONS, GapsSettings, TrainSettings
@@ -122,9 +122,9 @@ def garment_weights(settings: GapsSettings, g: Garment, body: AnnyBody) -> torch
     rv = body.rest()[0][0].double().numpy()
     wb = dense_body_weights((body.skin_indices.numpy(), body.skin_weights.double().numpy()),
                             body.num_vertices, body.num_bones)
-    w = skinning_weights(settings.skinning, g.vertices, rv, wb, garment_faces=g.faces)
-    if settings.method == "gaps" and settings.skin_smoothing > 0:
-        w = smooth_weights(w, g.faces, iterations=settings.skin_smoothing)
+    steps = settings.skin_smoothing if settings.method == "gaps" else None
+    w = skinning_weights(settings.skinning, g.vertices, rv, wb, garment_faces=g.faces,
+                         smoothing=steps)
     return torch.as_tensor(np.asarray(w), dtype=torch.float64)
 
 

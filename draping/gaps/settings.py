@@ -73,7 +73,8 @@ class GapsSettings:
     top_bones : int
         Skinning weights kept per garment vertex (the largest, renormalised).
     skin_smoothing : int
-        GAPS only: Laplacian smoothing steps (:func:`draping.skinning.smooth_weights`, step
+        GAPS only: Laplacian smoothing steps (``smoothing=`` of
+        :func:`draping.skinning.skinning_weights`, :func:`draping.skinning.smooth_weights`, step
         0.5, as NCS's) applied over the garment's edges to the RBF participation weights; 0
         gives the thesis' weights. The RBF participation of each garment vertex is computed
         from the body alone, vertex by vertex, so nothing makes neighbouring garment vertices

@@ -329,6 +329,34 @@ def test_gradient_clipping_bounds_a_spike(body):
         TrainSettings(grad_clip=-1.0)
 
 
+def test_garment_weights_are_bit_identical_to_rbf_then_smooth_weights(body):
+    """GAPS's skinning goes through ``skinning_weights(..., smoothing=)``: the same numbers,
+    bit for bit, as the RBF weights followed by ``smooth_weights`` (what shipped models were
+    trained on); NCS is nearest + 20 steps, SNUG nearest."""
+    from draping.gaps import garment_weights, template_garment
+    from draping.skinning import (
+        dense_body_weights,
+        laplacian_weights,
+        nearest_weights,
+        rbf_weights,
+        smooth_weights,
+    )
+
+    g = template_garment(GapsSettings(garment="tshirt"), body)
+    rv = body.rest()[0][0].double().numpy()
+    wb = dense_body_weights((body.skin_indices.numpy(), body.skin_weights.double().numpy()),
+                            body.num_vertices, body.num_bones)
+    rbf = rbf_weights(g.vertices, rv, wb)
+    for n in (0, 5, 20):
+        got = garment_weights(GapsSettings(garment="tshirt", skin_smoothing=n), g, body).numpy()
+        want = smooth_weights(rbf, g.faces, iterations=n) if n else rbf
+        assert np.array_equal(got, want)
+    got = garment_weights(GapsSettings(garment="tshirt", method="ncs"), g, body).numpy()
+    assert np.array_equal(got, laplacian_weights(g.vertices, g.faces, rv, wb))
+    got = garment_weights(GapsSettings(garment="tshirt", method="snug"), g, body).numpy()
+    assert np.array_equal(got, nearest_weights(g.vertices, rv, wb))
+
+
 def test_smoothed_rbf_stretches_less_than_the_thesis_rbf_on_a_tshirt(body):
     """Skinning alone on a held-back shape and motion: the RBF weights smoothed over the
     garment (``skin_smoothing``, the default) stretch the T-shirt less than the thesis' RBF

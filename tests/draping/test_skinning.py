@@ -189,3 +189,38 @@ def test_smooth_weights_bad_input_is_named():
         smooth_weights(w, faces + 3)
     with pytest.raises(ValueError, match="weights"):
         smooth_weights(w[:, :, None], faces)
+
+
+@pytest.mark.parametrize("method", ["nearest", "laplacian", "rbf"])
+def test_smoothing_option_is_smooth_weights_after_the_method(method):
+    body, w = _limb(n_bones=3)
+    garment, faces = _sleeve(0.15)
+    base = (rbf_weights(garment, body, w) if method == "rbf"
+            else nearest_weights(garment, body, w))
+    for steps in (0, 1, 7):
+        got = skinning_weights(method, garment, body, w, garment_faces=faces, smoothing=steps,
+                               smoothing_alpha=0.3)
+        want = smooth_weights(base, faces, iterations=steps, alpha=0.3) if steps else base
+        assert np.array_equal(got, want)  # bit-identical: one home for the smoothing
+    # Defaults: 'laplacian' is nearest plus 20 steps (laplacian_weights), the others unsmoothed.
+    got = skinning_weights(method, garment, body, w, garment_faces=faces)
+    want = laplacian_weights(garment, faces, body, w) if method == "laplacian" else base
+    assert np.array_equal(got, want)
+    t = skinning_weights(method, torch.from_numpy(garment), body, w, garment_faces=faces,
+                         smoothing=3)
+    assert isinstance(t, torch.Tensor)
+
+
+def test_smoothing_option_bad_input_is_named():
+    body, w = _limb()
+    garment, faces = _sleeve(0.05)
+    with pytest.raises(ValueError, match="smoothing"):
+        skinning_weights("rbf", garment, body, w, garment_faces=faces, smoothing=-1)
+    with pytest.raises(ValueError, match="smoothing_alpha"):
+        skinning_weights("nearest", garment, body, w, garment_faces=faces, smoothing_alpha=2.0)
+    with pytest.raises(ValueError, match="garment_faces"):
+        skinning_weights("rbf", garment, body, w, smoothing=2)
+    with pytest.raises(ValueError, match="smoothing"):
+        skinning_weights("laplacian", garment, body, w, garment_faces=faces, iterations=3)
+    with pytest.raises(ValueError, match="options"):
+        skinning_weights("nearest", garment, body, w, width=0.5)
