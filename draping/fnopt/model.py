@@ -215,6 +215,14 @@ def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
     return da, da_pcg, m, m2
 
 
+def _evaluate(p: StepProblem, a: torch.Tensor, grad: bool):
+    """``(L, g, hvp)`` at ``a`` when ``grad``, else ``(L, None, None)`` (no gradient pass)."""
+    if grad:
+        return p.grad_hvp(a)
+    with torch.no_grad():
+        return p.loss(a).detach(), None, None
+
+
 def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "subspace",
                 guard: bool = True, info: dict | None = None) -> torch.Tensor:
     """Algorithm 2: ``iters`` learned updates from ``a = 0``; returns the accelerations.
@@ -247,29 +255,20 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
     replaced = 0
     val, g, hvp = p.grad_hvp(a)
     for k in range(iters):
-        last = k == iters - 1
+        more = k < iters - 1              # a next iteration needs the gradient at a + dn
         z = pre(g) * p.free
         with torch.no_grad():
             dn, dn_pcg, _, m_pcg = subspace_update(model, p, g, hvp, z, z_prev, da)
-        a_new = a + dn
+        nxt = _evaluate(p, a + dn, more) if (more or guard) else None
         if guard:
-            if last:
-                with torch.no_grad():
-                    val_new = p.loss(a_new).detach()
-            else:
-                val_new, g_new, hvp_new = p.grad_hvp(a_new)
-            bad = (val_new - val).double() > m_pcg + slack * val.abs().double()
+            bad = (nxt[0] - val).double() > m_pcg + slack * val.abs().double()
             if bool(bad.any()):
                 replaced += int(bad.sum())
                 dn = torch.where(bad[:, None, None, None], dn_pcg, dn)
-                a_new = a + dn
-                if not last:
-                    val_new, g_new, hvp_new = p.grad_hvp(a_new)
-        elif not last:
-            val_new, g_new, hvp_new = p.grad_hvp(a_new)
-        a, da, z_prev = a_new, dn, z
-        if not last:
-            val, g, hvp = val_new, g_new, hvp_new
+                nxt = _evaluate(p, a + dn, True) if more else nxt
+        a, da, z_prev = a + dn, dn, z
+        if more:
+            val, g, hvp = nxt
     if info is not None:
         info["replaced"] = replaced
     return p.compose(a)

@@ -186,3 +186,81 @@ def test_rollout_perturbation_moves_free_vertices_only():
     assert torch.equal(ro0.handles, ro1.handles)
     assert torch.equal(ro0.positions, solvers.rollout(sheet, Material(), "corners", "xy", 2,
                                                       step).positions)
+
+
+def _solve_fnopt_unsimplified(net, p, iters, guard=True, info=None):
+    """``solve_fnopt``'s subspace loop as it was before its branches were folded (d58f036)."""
+    pre = solvers.laplace_preconditioner(p)
+    a = torch.zeros_like(p.x_prev)
+    z_prev = torch.zeros_like(a)
+    da = torch.zeros_like(a)
+    slack = 1e-6 if a.dtype != torch.float64 else 1e-12
+    replaced = 0
+    val, g, hvp = p.grad_hvp(a)
+    for k in range(iters):
+        last = k == iters - 1
+        z = pre(g) * p.free
+        with torch.no_grad():
+            dn, dn_pcg, _, m_pcg = model.subspace_update(net, p, g, hvp, z, z_prev, da)
+        a_new = a + dn
+        if guard:
+            if last:
+                with torch.no_grad():
+                    val_new = p.loss(a_new).detach()
+            else:
+                val_new, g_new, hvp_new = p.grad_hvp(a_new)
+            bad = (val_new - val).double() > m_pcg + slack * val.abs().double()
+            if bool(bad.any()):
+                replaced += int(bad.sum())
+                dn = torch.where(bad[:, None, None, None], dn_pcg, dn)
+                a_new = a + dn
+                if not last:
+                    val_new, g_new, hvp_new = p.grad_hvp(a_new)
+        elif not last:
+            val_new, g_new, hvp_new = p.grad_hvp(a_new)
+        a, da, z_prev = a_new, dn, z
+        if not last:
+            val, g, hvp = val_new, g_new, hvp_new
+    if info is not None:
+        info["replaced"] = replaced
+    return p.compose(a)
+
+
+@pytest.mark.parametrize("guard", [True, False])
+@pytest.mark.parametrize("overshoot", [False, True])
+def test_folded_guard_loop_is_bit_identical_on_a_rollout(guard, overshoot, monkeypatch):
+    # overshoot: every other update tripled (past the model's minimum, so the energy rises and
+    # the guard replaces it): the guard's branch on every iteration, the last one included
+    net = _net(1).float()
+    update = model.subspace_update
+    calls = [0]
+
+    def tripled(*args, **kw):
+        da, da_pcg, m, m_pcg = update(*args, **kw)
+        calls[0] += 1
+        return (3.0 * da if overshoot and calls[0] % 2 else da), da_pcg, m, m_pcg
+
+    monkeypatch.setattr(model, "subspace_update", tripled)
+    counts = {"new": [0, 0], "old": [0, 0]}
+
+    def step(kind):
+        def f(p, a0):
+            info = {}
+            ev = p.evals
+            if kind == "new":
+                a = model.solve_fnopt(net, p, 5, guard=guard, info=info)
+            else:
+                a = _solve_fnopt_unsimplified(net, p, 5, guard=guard, info=info)
+            counts[kind][0] += info["replaced"]
+            counts[kind][1] += p.evals - ev
+            return a
+        return f
+
+    ros = {}
+    for k in ("new", "old"):
+        calls[0] = 0
+        ros[k] = solvers.rollout(Sheet(10, 12), Material(), "diagonal", "xyz", 5, step(k),
+                                 speed=2.0)
+    assert torch.equal(ros["new"].positions, ros["old"].positions)
+    assert counts["new"] == counts["old"]
+    assert (counts["new"][0] > 0) == (guard and overshoot)     # the guard's branch ran
