@@ -39,7 +39,9 @@ of its garment (its recorded ``steps``; :class:`draping.gaps.TrainSettings` defa
 ships), and the shipped GAPS weights are used as they are. ``--steps N`` trains every compared
 model, GAPS included, for ``N`` steps (an equal, smaller budget; the shipped model is then
 reported beside them, marked as such). Trained models are cached (``--cache``), keyed by the
-fingerprint of their settings; a larger ``--steps`` continues a cached run.
+fingerprint of their settings and of their training data (:func:`data_digest`: the template
+and the rest garments of the first training shapes, so that a changed template or carry-over
+retrains); a larger ``--steps`` continues a cached run.
 
 Timings: inference and training are CPU seconds of one thread (``time.process_time``); the
 machine this ran on was shared, so wall times include waiting for a core.
@@ -48,6 +50,7 @@ machine this ran on was shared, so wall times include waiting for a core.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import shutil
@@ -110,10 +113,36 @@ def train_settings(garment: str, method: str = "gaps", inext: str = "auto",
     return TrainSettings(GapsSettings(**kw))
 
 
+@functools.cache
+def data_digest(garment_name: str, shapes: int, seed: int, probes: int = 2) -> str:
+    """SHA-256 of what a run trains on: the template and its first ``probes`` shape fits.
+
+    The rest garments of the first training shapes (:func:`draping.gaps.random_shapes` with
+    the run's ``shapes`` and ``seed``), carried over as the trainer does: a changed template
+    or a changed :func:`draping.garments.fit_garment_to_shape` changes it (cached per
+    process: call ``data_digest.cache_clear()`` after changing either in a live process).
+    """
+    import hashlib
+
+    from draping.body import AnnyBody
+    from draping.gaps import random_shapes, shape_case
+    from draping.garments import garment
+
+    g = garment(garment_name)
+    h = hashlib.sha256(ev.garment_digest(g).encode())
+    body = AnnyBody.load()
+    for s in random_shapes(shapes, seed)[:probes]:
+        h.update(ev.garment_digest(shape_case(g, body, s).garment).encode())
+    return h.hexdigest()
+
+
 def _run_key(settings) -> str:
     from polygeo.runs import fingerprint
 
-    return fingerprint(settings.key_dict())
+    m = settings.model  # a garment file is keyed by its path (in the settings) alone
+    data = "" if m.garment_file is not None else data_digest(m.garment, settings.shapes,
+                                                             settings.seed)
+    return fingerprint({"settings": settings.key_dict(), "data": data})
 
 
 def model_path(settings, steps: int, cache: Path) -> Path:

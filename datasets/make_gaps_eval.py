@@ -20,8 +20,10 @@ shapes are drawn with the run's seed, below 1000; ``draping.gaps.held_out_cases`
 A motion is generated once with :data:`MOTION_FRAMES` frames at 30 fps and a case uses its
 first ``frames`` (the procedural motions depend on their length), so that a longer
 evaluation extends a cached reference instead of redoing it. The cache key of a reference is
-the fingerprint of garment, the template's content (:func:`template_digest`), motion, seed,
-shape, motion length and solver settings.
+the fingerprint of garment, the template's content (:func:`template_digest`), the content of
+the rest garment carried over to the case's shape (:func:`rest_digest`: a changed
+``fit_garment_to_shape`` gets new references), motion, seed, shape, motion length and solver
+settings.
 """
 
 from __future__ import annotations
@@ -122,21 +124,38 @@ def case_motion(cache: Path, case: EvalCase, body=None):
                   torch.as_tensor(trans, dtype=torch.float32), 30.0)
 
 
+def garment_digest(g) -> str:
+    """SHA-256 of a garment's content (float64 vertices and int64 faces)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(np.asarray(g.vertices, dtype=np.float64)).tobytes())
+    h.update(np.ascontiguousarray(np.asarray(g.faces, dtype=np.int64)).tobytes())
+    return h.hexdigest()
+
+
 def template_digest(name: str) -> str:
     """SHA-256 of a shipped garment template's content (float64 vertices and faces).
 
     Part of a reference's cache key: a regenerated template (new cut, new sampling, moved
     vertices) gets new references instead of re-using drapes of the old one.
     """
-    import hashlib
-
     from draping.garments import garment
 
-    g = garment(name)
-    h = hashlib.sha256()
-    h.update(np.ascontiguousarray(np.asarray(g.vertices, dtype=np.float64)).tobytes())
-    h.update(np.ascontiguousarray(np.asarray(g.faces, dtype=np.int64)).tobytes())
-    return h.hexdigest()
+    return garment_digest(garment(name))
+
+
+def rest_digest(name: str, shape: tuple) -> str:
+    """SHA-256 of the rest garment the GAPS trainer makes for a shape (freshly carried over).
+
+    Part of a reference's cache key: a changed carry-over (:func:`draping.gaps.shape_case`,
+    :func:`draping.garments.fit_garment_to_shape`) gets new references. About 0.2-1 CPU s.
+    """
+    from draping.body import AnnyBody
+    from draping.gaps import shape_case
+    from draping.garments import garment
+
+    return garment_digest(shape_case(garment(name), AnnyBody.load(), shape).garment)
 
 
 def _key(case: EvalCase) -> str:
@@ -144,6 +163,7 @@ def _key(case: EvalCase) -> str:
     from polygeo.runs import fingerprint
 
     return fingerprint({"garment": case.garment, "template": template_digest(case.garment),
+                        "rest": rest_digest(case.garment, tuple(case.shape)),
                         "motion": case.motion, "seed": case.seed,
                         "shape": list(case.shape), "motion_frames": MOTION_FRAMES,
                         "solver": dataclasses.asdict(DEFAULT_SOLVER), "version": VERSION})

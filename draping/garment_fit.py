@@ -23,7 +23,14 @@ import numpy as np
 import scipy.sparse as sp
 
 from draping.garment_checks import crossing_pairs, face_edges
-from polygeo.mesh import boundary_edges, orient_faces, vertex_adjacency, vertex_normals
+from polygeo.mesh import (
+    boundary_edges,
+    dihedral_angles,
+    edges,
+    orient_faces,
+    vertex_adjacency,
+    vertex_normals,
+)
 
 __all__ = [
     "boundary_loops",
@@ -36,6 +43,9 @@ __all__ = [
     "room",
     "project_out",
     "fit_to_body",
+    "smooth_displacement",
+    "fold_faces",
+    "relax_folds",
     "wind_outward",
 ]
 
@@ -245,6 +255,120 @@ def fit_to_body(v: np.ndarray, f: np.ndarray, query, clearance,
             near |= (adj @ near.astype(float)) > 0
         floor = 0.05 * np.broadcast_to(np.asarray(clearance, dtype=np.float64), (len(v),))
         space[near] = np.maximum(0.5 * space[near], floor[near])
+    return v
+
+
+# ------------------------------------------------------------ carrying to another body
+
+
+def smooth_displacement(u: np.ndarray, f: np.ndarray, v: np.ndarray,
+                        distance: np.ndarray) -> np.ndarray:
+    """Screened smoothing of a displacement field over the garment's edges.
+
+    A displacement carried from the body to the garment (each garment vertex takes the
+    displacement of the body vertices nearest to it) is smooth where the garment lies on the
+    skin but jumps where the nearest body vertices switch from one body part to another
+    across a gap (between the legs, under the arms): carried as it is, it folds the garment
+    there. It is replaced by the minimiser of
+
+        sum_i c_i |u_i - u0_i|^2 + sum_(i,j) edge |u_i - u_j|^2,
+        c_i = (l / max(distance_i, l))^2,
+
+    with ``l`` the mean edge length: a vertex on the skin (``distance <= l``) keeps its own
+    displacement up to about one edge of smoothing, one hanging ``k`` edge lengths off the
+    body has a smoothing length of about ``k`` edges (the distance over which its nearest
+    body vertex is ambiguous). Scale-free: only ratios of lengths enter.
+
+    Parameters
+    ----------
+    u : (V, 3) float64
+        Carried displacement (any length unit).
+    f : (F, 3) int64
+        Garment faces.
+    v : (V, 3) float64
+        Garment vertices (for the mean edge length; same unit).
+    distance : (V,) float64
+        Distance of each garment vertex to the body vertices its displacement came from.
+
+    Returns
+    -------
+    (V, 3) float64
+        Smoothed displacement.
+    """
+    import scipy.sparse.linalg as spl
+
+    n = len(v)
+    e = edges(f)
+    ell = float(np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1).mean())
+    adj = vertex_adjacency(f, n).astype(np.float64)
+    adj.data[:] = 1.0
+    lap = sp.diags(np.asarray(adj.sum(1)).ravel()) - adj  # graph Laplacian (V, V)
+    c = (ell / np.maximum(np.asarray(distance, dtype=np.float64), ell)) ** 2
+    return spl.spsolve(sp.csc_matrix(sp.diags(c) + lap), c[:, None] * u)
+
+
+def _min_angles(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Smallest corner angle of each face (degrees)."""
+    t = v[f]
+    out = np.full(len(f), 180.0)
+    for c in range(3):
+        a, b = t[:, (c + 1) % 3] - t[:, c], t[:, (c + 2) % 3] - t[:, c]
+        ang = np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.einsum("ij,ij->i", a, b))
+        out = np.minimum(out, np.degrees(ang))
+    return out
+
+
+def fold_faces(v: np.ndarray, f: np.ndarray, reference: np.ndarray, max_fold: float = 90.0,
+               min_angle: float = 5.0) -> np.ndarray:
+    """Faces folded or squashed by a deformation of ``reference`` into ``v``.
+
+    A face is flagged when one of its hinges bends more than ``max_fold`` degrees and 30
+    degrees more than in ``reference``, or when its smallest corner angle is under
+    ``min_angle`` degrees and under half of its reference value (defects the reference
+    already has are not flagged).
+
+    Returns
+    -------
+    (F,) bool
+    """
+    h = dihedral_angles(reference, f)
+    a0 = np.degrees(np.abs(np.asarray(h.angle)))
+    a = np.degrees(np.abs(np.asarray(dihedral_angles(v, f, hinges=h).angle)))
+    bad = np.zeros(len(f), bool)
+    hf = np.asarray(h.faces)
+    bad[hf[(a > max_fold) & (a > a0 + 30.0)].ravel()] = True
+    m0, m = _min_angles(reference, f), _min_angles(v, f)
+    return bad | ((m < min_angle) & (m < 0.5 * m0))
+
+
+def relax_folds(v: np.ndarray, f: np.ndarray, query, room: np.ndarray, reference: np.ndarray,
+                rounds: int = 10, iterations: int = 10) -> np.ndarray:
+    """Smooth out folds and slivers (:func:`fold_faces`) left by a fit, locally.
+
+    Each round, the vertices of flagged faces and a neighbourhood that grows by one ring per
+    round (from two) get ``iterations`` Laplacian steps (rims along themselves), each followed
+    by a projection to half the ``room`` (V,) off the body: in a sharp hollow (a small body's
+    armpit) the full clearance is itself what creases the garment. Vertices outside the
+    region do not move (unless inside the body). Stops when no face is flagged or after
+    ``rounds`` rounds; returns the ``(V, 3)`` vertices.
+    """
+    mean, _ = mean_operators(f, len(v))
+    adj = vertex_adjacency(f, len(v))
+    region = np.zeros(len(v), bool)
+    for r in range(rounds):
+        bad = fold_faces(v, f, reference)
+        if not bad.any():
+            break
+        near = np.zeros(len(v), bool)
+        near[f[bad].ravel()] = True
+        for _ in range(2 + r):
+            near |= (adj @ near.astype(float)) > 0
+        region |= near
+        space = np.where(region, 0.5 * room, 0.0)  # the rest only kept out of the body
+        for _ in range(iterations):
+            v = v.copy()
+            v[region] += 0.5 * (mean @ v - v)[region]
+            v = project_out(v, query, space)
     return v
 
 

@@ -51,8 +51,10 @@ from draping.garment_fit import (
     fit_to_body,
     largest_component,
     project_out,
+    relax_folds,
     remesh,
     room,
+    smooth_displacement,
     wind_outward,
 )
 from polygeo.checks import check_choice, check_int
@@ -585,8 +587,12 @@ def fit_garment_to_shape(
 
     Each garment vertex moves with the body around it: by the Gaussian-weighted mean
     displacement of its ``neighbours`` nearest body vertices between the two rest shapes
-    (width: the distance to the nearest one); then a few rounds of the template's fit
-    (smoothing, projection to its clearance off the new body, untangling) settle it.
+    (width: the distance to the nearest one), smoothed over the garment
+    (:func:`draping.garment_fit.smooth_displacement`: the nearest body vertices switch
+    between the legs or from arm to torso, and the raw field folds the garment there); then
+    a few rounds of the template's fit (smoothing, projection to its clearance off the new
+    body, untangling) settle it, and folds or slivers left in sharp hollows of a body far
+    from the template's are relaxed locally (:func:`draping.garment_fit.relax_folds`).
 
     Parameters
     ----------
@@ -614,7 +620,8 @@ def fit_garment_to_shape(
     d, i = cKDTree(src).query(garment.vertices, k=neighbours)
     w = np.exp(-((d / np.maximum(d[:, :1], 1e-12)) ** 2 - 1.0))
     w /= w.sum(1, keepdims=True)
-    v = garment.vertices + np.einsum("gk,gkc->gc", w, (dst - src)[i])
+    u = np.einsum("gk,gkc->gc", w, (dst - src)[i])  # jumps where the nearest part switches
+    v = garment.vertices + smooth_displacement(u, garment.faces, garment.vertices, d[:, 0])
     faces_body = np.asarray(torch.as_tensor(body.faces).cpu(), dtype=np.int64)
     if query is None:
         query = _default_query(dst, faces_body)
@@ -625,8 +632,11 @@ def fit_garment_to_shape(
         clearance = _clearance_at(_as_body(body, shape), GarmentSpec(**known), v[:, 2])
     if np.any(clearance > 0):  # a few rounds of the template's own fit settle it on the new body
         v = fit_to_body(v, garment.faces, query, clearance, iterations=5)
+        space = room(v, query, clearance)
     else:
-        v = project_out(v, query, np.full(len(v), 1e-3 * _extent(dst)))
+        space = np.full(len(v), 1e-3 * _extent(dst))
+        v = project_out(v, query, space)
+    v = relax_folds(v, garment.faces, query, space, garment.vertices)
     info = dict(garment.info)
     info["shape"] = None if shape is None else np.asarray(torch.as_tensor(shape)).tolist()
     return Garment(garment.name, v, garment.faces.copy(), info)

@@ -100,6 +100,45 @@ def test_reference_key_follows_the_template_content(ev, monkeypatch):
     assert ev.reference_dir(Path("/cache"), c) != folder  # a stale drape is not re-used
 
 
+def _moved_fit(monkeypatch):
+    """Make the trainer's carry-over to a body shape move one vertex by a micrometre."""
+    import draping.gaps.data as data
+    import draping.garments as garments
+
+    real = garments.fit_garment_to_shape
+
+    def moved(*a, **k):
+        g = real(*a, **k)
+        v = np.array(g.vertices, dtype=np.float64)
+        v[0, 0] += 1e-6
+        return garments.Garment(g.name, v, g.faces, g.info)
+
+    monkeypatch.setattr(data, "fit_garment_to_shape", moved)
+
+
+def test_reference_key_follows_the_carried_rest_garment(ev, monkeypatch):
+    c = ev.eval_cases(["skirt"], frames=4, quick=True)[0]
+    key, folder = ev._key(c), ev.reference_dir(Path("/cache"), c)
+    _moved_fit(monkeypatch)
+    assert ev._key(c) != key
+    assert ev.reference_dir(Path("/cache"), c) != folder  # drapes of the old fit not re-used
+
+
+def test_model_key_follows_the_training_data(bm, monkeypatch):
+    st = bm.train_settings("skirt", width=32, depth=1)
+    bm.data_digest.cache_clear()
+    path = bm.model_path(st, 100, Path("/cache"))
+    assert bm.model_path(st, 100, Path("/cache")) == path
+    _moved_fit(monkeypatch)
+    bm.data_digest.cache_clear()
+    try:
+        assert bm.model_path(st, 100, Path("/cache")) != path  # a changed fit retrains
+    finally:
+        bm.data_digest.cache_clear()
+    other = bm.train_settings("skirt", width=64, depth=1)
+    assert bm.model_path(other, 100, Path("/cache")) != path
+
+
 def test_case_pairs_keep_only_the_named_cases(bm, ev):
     cases = ev.eval_cases(["tshirt", "dress"], frames=4)
     kept = bm.keep_pairs(cases, ["turn/2000", "random/2001"])
