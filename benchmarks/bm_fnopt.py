@@ -7,13 +7,18 @@ cached in benchmarks/results/fnopt_refs/):
   GD / Adam / L-BFGS (plain, and strong-Wolfe ``lbfgs-wolfe``; PCG, DCT-preconditioned descent) over
   their iteration counts, at 32, 64, 100 (Tables 6.6-6.7, Figure 6.10 analogues);
 - ``lbfgs``: the equal-error comparison (mean e_3D) of L-BFGS variants against FNOpt N = 10;
+- ``ratio``: from the ``iters`` JSONs of ``--ratio-res``: the speed-up of FNOpt over each
+  L-BFGS variant at equal error along the whole FNOpt curve (N = 3 ... 20), the L-BFGS time
+  interpolated log-log on its Pareto front (:func:`equal_error_speedup`), charted;
 - ``reference``: the convergence of the reference over its tolerance;
 - ``super``: FNOpt run at 64 against the 32 rollout upsampled bilinearly to 64 (Table 6.4);
 - ``general``: speed factors 1.2 / 1.5 / 2, the five handle layouts and seeded random pin sets
   at ``--res`` (Figures 6.6-6.7); the plan entry ``floor:N`` is a sensitivity row: PCG with N
-  iterations from an initial state perturbed by 0.1 mm (:data:`FLOOR_PERTURB`), whose error
-  against the reference is what the case's physics alone makes of a tiny difference (a case
-  whose floor is above 5 cannot separate optimisers by e_CD);
+  iterations from an initial state perturbed by 0.1 mm (:data:`FLOOR_PERTURB`); ``floor-ref:0``
+  the converged reference itself re-solved from that perturbed start: its error against the
+  reference is what the case's physics alone makes of a tiny difference (the physical floor; a
+  case whose floor is above 5 cannot separate optimisers by e_CD). ``floors`` in the JSON puts
+  each case's FNOpt e_CD beside its floors (:func:`floor_table`);
 - ``sweep``: the width/modes sweep (from benchmarks/fnopt_sweep.py's JSON), charted;
 - ``stability``: a long FNOpt rollout (``--frames 500 --res 100``): finite and bounded.
 
@@ -28,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
 import time
@@ -69,6 +75,19 @@ LBFGS_VARIANTS = (("lbfgs m10 strong-Wolfe", "lbfgs-wolfe", {"history": 10}),
                   ("lbfgs m10 strong-Wolfe float64", "lbfgs-wolfe",
                    {"history": 10, "float64": True}))
 
+#: Further L-BFGS variants of the ``iters`` part by name: (optimiser, keyword arguments).
+#: ``lbfgs-wolfe64``: PyTorch's strong-Wolfe L-BFGS solved in float64; ``lbfgs-m10`` /
+#: ``lbfgs-m20``: ours (unit step) with a longer memory; ``lbfgs-pre``: ours with Armijo line
+#: search and the DCT grid-Laplacian initial inverse Hessian (the reference's algorithm, cut at N
+#: iterations: L-BFGS given the preconditioner FNOpt uses).
+LBFGS_NAMED = {
+    "lbfgs-wolfe64": (solvers.solve_lbfgs_wolfe, {"history": 10, "float64": True}),
+    "lbfgs-m10": (solvers.solve_lbfgs, {"history": 10}),
+    "lbfgs-m20": (solvers.solve_lbfgs, {"history": 20}),
+    "lbfgs-pre": (solvers.solve_lbfgs, {"history": 20, "line_search": True,
+                                        "precondition": 0.5}),
+}
+
 #: "Equal error": the metric compared (mean over the rollout's measured frames). e_3D, not
 #: e_CD: e_CD x 1e3 with 10k samples has a sampling floor of about 0.13 that every converged
 #: optimiser reaches, so it cannot rank them near convergence.
@@ -88,6 +107,9 @@ def _step(name: str, n: int, net=None, lr=None, **kw):
         return lambda p, a0: solvers.solve_lbfgs(p, n, step=lr or 1.0, **kw)
     if name == "lbfgs-wolfe":
         return lambda p, a0: solvers.solve_lbfgs_wolfe(p, n, **kw)
+    if name in LBFGS_NAMED:
+        kw = {**LBFGS_NAMED[name][1], **kw}
+        return lambda p, a0: LBFGS_NAMED[name][0](p, n, **kw)
     lr = lr if lr is not None else DEFAULT_LR[name]
     return lambda p, a0: solvers.CLASSICAL[name](p, n, lr=lr)
 
@@ -97,18 +119,18 @@ def _step(name: str, n: int, net=None, lr=None, **kw):
 FLOOR_PERTURB = 1e-4
 
 
-def _rollout(s: SimSettings, step, perturb: float = 0.0):
+def _rollout(s: SimSettings, step, perturb: float = 0.0, **kw):
     t0 = time.process_time()
     try:
         ro = solvers.rollout(s.sheet(), s.material, s.handles, s.motion, s.frames, step,
-                             s.speed, perturb=perturb)
+                             s.speed, perturb=perturb, **kw)
     except ValueError as exc:          # diverged
         return None, str(exc), time.process_time() - t0
     return ro, None, time.process_time() - t0
 
 
-def _measure(s: SimSettings, step, ref, every: int, perturb: float = 0.0) -> dict:
-    ro, err, cpu = _rollout(s, step, perturb)
+def _measure(s: SimSettings, step, ref, every: int, perturb: float = 0.0, **kw) -> dict:
+    ro, err, cpu = _rollout(s, step, perturb, **kw)
     if ro is None:
         return {"diverged": err, "cpu_ms_per_frame": 1e3 * cpu / s.frames}
     m = frame_metrics(ro, ref, every)
@@ -132,7 +154,12 @@ def part_iters(args, net) -> dict:
         [("pgd", n) for n in (10, 30)] + \
         [("lbfgs-wolfe", n) for n in (20, 50, 100, 200)] + \
         [("lbfgs", n) for n in (10, 30, 100, 200)] + \
+        [("lbfgs-wolfe64", n) for n in (20, 30, 50, 75, 100, 150, 200)] + \
+        [(m, n) for m in ("lbfgs-m10", "lbfgs-m20") for n in (30, 50, 75, 100, 150, 200)] + \
+        [("lbfgs-pre", n) for n in (5, 10, 20, 30, 50)] + \
         [("adam", n) for n in (10, 100)] + [("gd", n) for n in (10, 100)]
+    if args.counts:
+        plan = [(m, int(n)) for m, n in (q.split(":") for q in args.counts.split(","))]
     if args.only:
         plan = [p for p in plan if p[0] in args.only.split(",")]
     for name, n in plan:
@@ -184,12 +211,40 @@ def part_general(args, net) -> dict:
                 continue
             if name == "floor":         # sensitivity: PCG-n from a 0.1 mm perturbed start
                 r = _measure(s, _step("pcg", n), ref, args.every, FLOOR_PERTURB)
+            elif name == "floor-ref":   # the physical floor: the reference, perturbed start
+                r = _measure(s, lambda p, a0: solvers.solve_reference(p, a0), ref, args.every,
+                             FLOOR_PERTURB, warm_start=True, dtype=torch.float64)
             else:
                 r = _measure(s, _step(name, n, net), ref, args.every)
             r.update(layout=layout, motion=motion, speed=speed, optimizer=name, iters=n)
             rec["runs"].append(r)
             print(json.dumps(r), flush=True)
+    rec["floors"] = floor_table(rec["runs"])
     return rec
+
+
+def floor_table(runs: list) -> list:
+    """Per case: FNOpt N = 10's e_CD beside the case's floors (``floor``, ``floor-ref`` rows).
+
+    ``over_floor``: FNOpt's e_CD minus the physical floor (``floor-ref``) -- the part of the
+    error an optimiser can be blamed for; ``None`` where a row is missing.
+    """
+    out = []
+    cases = list(dict.fromkeys((r["layout"], r["motion"], r["speed"]) for r in runs))
+    for case in cases:
+        rs = {(r["optimizer"], r["iters"]): r for r in runs
+              if (r["layout"], r["motion"], r["speed"]) == case and "e_cd" in r}
+        fn = rs.get(("fnopt", 10))
+        pcg_floor = next((r for (o, _), r in rs.items() if o == "floor"), None)
+        ref_floor = next((r for (o, _), r in rs.items() if o == "floor-ref"), None)
+        row = {"layout": case[0], "motion": case[1], "speed": case[2],
+               "fnopt_e_cd": fn["e_cd"] if fn else None,
+               "floor_pcg_e_cd": pcg_floor["e_cd"] if pcg_floor else None,
+               "floor_ref_e_cd": ref_floor["e_cd"] if ref_floor else None}
+        row["over_floor"] = (row["fnopt_e_cd"] - row["floor_ref_e_cd"]
+                             if fn and ref_floor else None)
+        out.append(row)
+    return out
 
 
 def part_lbfgs(args, net) -> dict:
@@ -235,6 +290,111 @@ def part_lbfgs(args, net) -> dict:
             "speedup": hit["cpu_ms_per_frame"] / fn["cpu_ms_per_frame"] if hit else None,
             "note": None if hit else f"not reached within {rs[-1]['iters'] if rs else 0} "
                                      "iterations"})
+    return rec
+
+
+def pareto_front(points: list, metric: str = EQUAL_ERROR_METRIC,
+                 cost: str = "step_cpu_ms") -> list:
+    """The runs not beaten by a cheaper one: sorted by ``cost``, errors strictly falling."""
+    front = []
+    for r in sorted((r for r in points if metric in r), key=lambda r: r[cost]):
+        if not front or r[metric] < front[-1][metric]:
+            front.append(r)
+    return front
+
+
+def equal_error_speedup(fast: list, slow: list, metric: str = EQUAL_ERROR_METRIC,
+                        cost: str = "step_cpu_ms") -> list:
+    """Speed-up of ``fast`` over ``slow`` at equal error, for every run of ``fast``.
+
+    ``fast``, ``slow``: runs (dicts with ``metric`` and ``cost``, e.g. CPU ms per frame) of two
+    optimisers over their iteration counts. For each ``fast`` run, the cost at which ``slow``
+    reaches the same error is interpolated linearly in (log error, log cost) between the two
+    runs of ``slow``'s Pareto front (:func:`pareto_front`) that bracket it; ``speedup`` is that
+    cost over the ``fast`` run's. Outside the front no figure is invented: ``bound`` says
+    ``"<="`` (``slow``'s cheapest run is already as accurate: the speed-up is at most the one
+    given, computed with that run's cost) or ``">="`` (``slow`` never gets there: at least the
+    one given, with its most expensive run's cost).
+
+    Returns
+    -------
+    list of dict
+        ``iters``, ``error``, ``cost``, ``slow_cost``, ``speedup``, ``bound`` (``"="``, ``"<="``
+        or ``">="``) per ``fast`` run, in ``fast``'s order.
+    """
+    front = pareto_front(slow, metric, cost)
+    if not front:
+        raise ValueError("slow: expected at least one run with the error metric, got none")
+    out = []
+    for r in fast:
+        if metric not in r:
+            continue
+        e = r[metric]
+        j = next((k for k, q in enumerate(front) if q[metric] <= e), None)
+        if j is None:
+            c, bound = front[-1][cost], ">="
+        elif j == 0:
+            c, bound = front[0][cost], "<="
+        else:
+            a, b = front[j - 1], front[j]
+            w = math.log(a[metric] / e) / math.log(a[metric] / b[metric])
+            c = math.exp((1 - w) * math.log(a[cost]) + w * math.log(b[cost]))
+            bound = "="
+        out.append({"iters": r.get("iters"), "error": e, "cost": r[cost], "slow_cost": c,
+                    "speedup": c / r[cost], "bound": bound})
+    return out
+
+
+def part_ratio(args, net) -> dict:
+    """FNOpt's speed-up over the L-BFGS variants at equal error along its curve (``iters`` JSONs).
+
+    Per resolution of ``--ratio-res``: for each L-BFGS variant present, the speed-up of every
+    FNOpt N (:func:`equal_error_speedup`, e_3D, the optimisers' own CPU ms per frame); the
+    *baseline* is the variant needing the least time at FNOpt N = 10's error (the strongest).
+    ``speedup_vs_pcg``: the same against PCG (FNOpt's step without the FNO; below 1: PCG
+    reaches FNOpt's error in less time).
+    """
+    rec = {"metric": EQUAL_ERROR_METRIC, "cost": "step_cpu_ms", "res": {}}
+    for res in (int(v) for v in args.ratio_res.split(",")):
+        it = json.loads((OUT / f"bm_fnopt_iters_{res}.json").read_text())
+        runs = [r for r in it["runs"] if "e_cd" in r]
+        fast = sorted((r for r in runs if r["optimizer"] == "fnopt"), key=lambda r: r["iters"])
+        names = sorted({r["optimizer"] for r in runs if r["optimizer"].startswith("lbfgs")})
+        per = {}
+        for name in names:
+            per[name] = equal_error_speedup(fast, [r for r in runs if r["optimizer"] == name])
+        at10 = {k: next((q for q in v if q["iters"] == 10), None) for k, v in per.items()}
+        base = min((k for k in per if at10[k]), key=lambda k: at10[k]["slow_cost"],
+                   default=None)
+        pcg = [r for r in runs if r["optimizer"] == "pcg"]
+        rec["res"][str(res)] = {"frames": it["frames"], "motion": it["motion"],
+                                "iters_json": f"bm_fnopt_iters_{res}.json", "baseline": base,
+                                "speedup": per,
+                                "speedup_vs_pcg": equal_error_speedup(fast, pcg) if pcg else None}
+    plt = _plt()
+    keys = list(rec["res"])
+    fig, axes = plt.subplots(1, len(keys), figsize=(5.5 * len(keys), 4), dpi=100, squeeze=False)
+    for ax, res in zip(axes[0], keys):
+        it = json.loads((OUT / f"bm_fnopt_iters_{res}.json").read_text())
+        for name in ["fnopt", "pcg"] + list(rec["res"][res]["speedup"]):
+            rs = sorted((r for r in it["runs"] if r["optimizer"] == name and "e_3d" in r),
+                        key=lambda r: r["iters"])
+            if rs:
+                ax.plot([r["step_cpu_ms"] for r in rs], [r["e_3d"] for r in rs], marker="o",
+                        ms=3, label=name, lw=2.5 if name == "fnopt" else 1.2)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("optimiser CPU ms per frame (1 thread, shared machine)")
+        ax.set_ylabel("mean e_3D vs converged reference")
+        base = rec["res"][res]["baseline"]
+        sp = [q for q in rec["res"][res]["speedup"].get(base, []) if q["bound"] == "="]
+        txt = ", ".join(f"N{q['iters']}: {q['speedup']:.1f}x" for q in sp)
+        ax.set_title(f"{res}x{res}: FNOpt vs {base}\n{txt}", fontsize=8)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(OUT / "bm_fnopt_ratio.png")
+    plt.close(fig)
     return rec
 
 
@@ -344,7 +504,7 @@ def _loglog_chart(curves: dict, xs: dict, path: Path, xlabel: str, ylabel: str, 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--part", choices=("iters", "super", "general", "sweep", "lbfgs",
-                                       "reference", "stability"),
+                                       "reference", "stability", "ratio"),
                     default="iters")
     ap.add_argument("--res", type=int, default=32)
     ap.add_argument("--frames", type=int, default=60)
@@ -352,6 +512,10 @@ def main() -> None:
     ap.add_argument("--speed", type=float, default=1.0)
     ap.add_argument("--every", type=int, default=3, help="metric frame stride")
     ap.add_argument("--only", default="", help="comma-separated optimisers (iters part)")
+    ap.add_argument("--counts", default="", help="iters part: optimiser:iterations pairs, "
+                    "comma-separated, replacing the plan")
+    ap.add_argument("--ratio-res", default="32,64", help="ratio part: resolutions whose iters "
+                    "JSON is read")
     ap.add_argument("--weights", default=None)
     ap.add_argument("--cases", default="", help="general part: comma-separated case numbers")
     ap.add_argument("--plan", default="fnopt:10,pcg:10,pgd:10,lbfgs:100",
@@ -394,11 +558,11 @@ def main() -> None:
            "note": "CPU times, 1 thread, shared busy 2-core machine"}
     rec.update({"iters": part_iters, "super": part_super, "general": part_general,
                 "lbfgs": part_lbfgs, "reference": part_reference,
-                "stability": part_stability}[args.part](args, net))
+                "stability": part_stability, "ratio": part_ratio}[args.part](args, net))
     rec.update(machine=platform.processor() or platform.machine(), python=platform.python_version(),
                date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                load_average=os.getloadavg())
-    tag = f"{args.part}_{args.res}" if args.part != "super" else "super"
+    tag = f"{args.part}_{args.res}" if args.part not in ("super", "ratio") else args.part
     tag += f"_{args.tag}" if args.tag else ""
     path = OUT / f"bm_fnopt_{tag}.json"
     if args.part == "iters" and path.is_file():      # merge with the runs of other invocations

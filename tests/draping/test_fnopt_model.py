@@ -45,6 +45,22 @@ def test_spectral_conv_is_resolution_consistent():
     assert torch.allclose(out[64][..., ::2, ::2], out[32], atol=1e-5)
 
 
+@pytest.mark.parametrize("shape", [(1, 32, 32), (3, 64, 48), (2, 33, 20), (1, 7, 5),
+                                   (1, 100, 100)])
+def test_pruned_spectral_transform_is_the_full_one(shape):
+    # the inference path (pruned 1-D transforms, one broadcast product) against the training
+    # path (full rfft2 / irfft2, two einsums), float64; (7, 5): modes clipped by the grid
+    b, h, w = shape
+    torch.manual_seed(1)
+    conv = model.SpectralConv2d(3, 4, 8).double()
+    x = torch.randn(b, 3, h, w, dtype=torch.float64)
+    full = conv(x)                                   # gradients enabled: the full transforms
+    with torch.no_grad():
+        pruned = conv(x)
+    assert torch.equal(pruned, conv.forward_pruned(x).detach())
+    assert torch.allclose(pruned, full.detach(), rtol=0, atol=1e-12 * float(full.abs().max()))
+
+
 def test_fno_runs_on_any_grid_and_keeps_handles_fixed():
     net = model.FNO(model.FNOConfig(width=8, modes=4, layers=2, projection=8))
     for h, w in ((32, 32), (20, 48), (7, 5)):

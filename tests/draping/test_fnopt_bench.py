@@ -1,0 +1,75 @@
+"""bm_fnopt's equal-error speed-up (log-log interpolation on a Pareto front) and floor table."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def bm():
+    spec = importlib.util.spec_from_file_location("bm_fnopt", ROOT / "benchmarks" / "bm_fnopt.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("bm_fnopt", mod)
+    spec.loader.exec_module(sys.modules["bm_fnopt"])
+    return sys.modules["bm_fnopt"]
+
+
+def _runs(pairs):
+    return [{"iters": i, "e_3d": e, "step_cpu_ms": c} for i, (e, c) in enumerate(pairs)]
+
+
+def test_equal_error_speedup_is_exact_on_a_power_law_front(bm):
+    # slow: error = 1 / cost^2 (a straight line in log-log), plus a dominated run (dearer, worse)
+    slow = _runs([(1 / c ** 2, c) for c in (10.0, 20.0, 40.0, 80.0)] + [(1 / 15.0 ** 2, 90.0)])
+    fast = [{"iters": 10, "e_3d": 1 / 30.0 ** 2, "step_cpu_ms": 3.0},
+            {"iters": 20, "e_3d": 1 / 50.0 ** 2, "step_cpu_ms": 10.0}]
+    out = bm.equal_error_speedup(fast, slow)
+    assert [q["bound"] for q in out] == ["=", "="]
+    assert out[0]["slow_cost"] == pytest.approx(30.0, rel=1e-12)
+    assert out[0]["speedup"] == pytest.approx(10.0, rel=1e-12)
+    assert out[1]["slow_cost"] == pytest.approx(50.0, rel=1e-12)
+    assert [q["step_cpu_ms"] for q in bm.pareto_front(slow)] == [10.0, 20.0, 40.0, 80.0]
+
+
+def test_equal_error_speedup_outside_the_front_gives_bounds_not_figures(bm):
+    slow = _runs([(1e-2, 10.0), (1e-3, 100.0)])
+    fast = _runs([(5e-2, 1.0), (1e-4, 50.0), (1e-3, 20.0)])
+    out = bm.equal_error_speedup(fast, slow)
+    assert [q["bound"] for q in out] == ["<=", ">=", "="]
+    assert out[0]["speedup"] == pytest.approx(10.0)        # at most: slow's cheapest run
+    assert out[1]["speedup"] == pytest.approx(2.0)         # at least: slow's dearest run
+    assert out[2]["speedup"] == pytest.approx(5.0)         # exactly on a front point
+    with pytest.raises(ValueError, match="slow"):
+        bm.equal_error_speedup(fast, [{"iters": 1, "step_cpu_ms": 1.0}])
+
+
+def test_floor_table_puts_fnopt_beside_the_floors(bm):
+    runs = [{"layout": "diagonal", "motion": "xy", "speed": 1.0, "optimizer": o, "iters": n,
+             "e_cd": e} for o, n, e in (("fnopt", 10, 6.0), ("floor", 40, 1.2),
+                                        ("floor-ref", 0, 0.12))]
+    runs.append({"layout": "single", "motion": "xy", "speed": 1.0, "optimizer": "fnopt",
+                 "iters": 10, "e_cd": 1.6})
+    rows = bm.floor_table(runs)
+    assert rows[0]["over_floor"] == pytest.approx(5.88)
+    assert (rows[0]["floor_pcg_e_cd"], rows[0]["floor_ref_e_cd"]) == (1.2, 0.12)
+    assert rows[1]["floor_ref_e_cd"] is None and rows[1]["over_floor"] is None
+
+
+def test_parsimony_pick_takes_the_smallest_model_within_ten_percent():
+    spec = importlib.util.spec_from_file_location("fnopt_sweep",
+                                                  ROOT / "benchmarks" / "fnopt_sweep.py")
+    sw = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(sw)
+    runs = [{"parameters": 4, "val_subopt": 0.040}, {"parameters": 1, "val_subopt": 0.034},
+            {"parameters": 2, "val_subopt": 0.0329}, {"parameters": 9, "val_subopt": 0.030},
+            {"parameters": 0, "val_subopt": float("nan")}]
+    assert sw.parsimony_pick(runs)["parameters"] == 2      # 0.0329 <= 1.1 * 0.030 < 0.034
+    assert sw.parsimony_pick(runs, tol=0.5)["parameters"] == 1
+    with pytest.raises(ValueError, match="val_subopt"):
+        sw.parsimony_pick([{"parameters": 1, "val_subopt": None}])
