@@ -39,9 +39,9 @@ of its garment (its recorded ``steps``; :class:`draping.gaps.TrainSettings` defa
 ships), and the shipped GAPS weights are used as they are. ``--steps N`` trains every compared
 model, GAPS included, for ``N`` steps (an equal, smaller budget; the shipped model is then
 reported beside them, marked as such). Trained models are cached (``--cache``), keyed by the
-fingerprint of their settings and of their training data (:func:`data_digest`: the template
-and the rest garments of the first training shapes, so that a changed template or carry-over
-retrains); a larger ``--steps`` continues a cached run.
+fingerprint of their settings and of their training data (``make_gaps_eval.data_digest``:
+the template and the rest garments of the first training shapes, so that a changed template
+or carry-over retrains); a larger ``--steps`` continues a cached run.
 
 Timings: inference and training are CPU seconds of one thread (``time.process_time``); the
 machine this ran on was shared, so wall times include waiting for a core.
@@ -50,7 +50,6 @@ machine this ran on was shared, so wall times include waiting for a core.
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import os
 import shutil
@@ -113,35 +112,12 @@ def train_settings(garment: str, method: str = "gaps", inext: str = "auto",
     return TrainSettings(GapsSettings(**kw))
 
 
-@functools.cache
-def data_digest(garment_name: str, shapes: int, seed: int, probes: int = 2) -> str:
-    """SHA-256 of what a run trains on: the template and its first ``probes`` shape fits.
-
-    The rest garments of the first training shapes (:func:`draping.gaps.random_shapes` with
-    the run's ``shapes`` and ``seed``), carried over as the trainer does: a changed template
-    or a changed :func:`draping.garments.fit_garment_to_shape` changes it (cached per
-    process: call ``data_digest.cache_clear()`` after changing either in a live process).
-    """
-    import hashlib
-
-    from draping.body import AnnyBody
-    from draping.gaps import random_shapes, shape_case
-    from draping.garments import garment
-
-    g = garment(garment_name)
-    h = hashlib.sha256(ev.garment_digest(g).encode())
-    body = AnnyBody.load()
-    for s in random_shapes(shapes, seed)[:probes]:
-        h.update(ev.garment_digest(shape_case(g, body, s).garment).encode())
-    return h.hexdigest()
-
-
 def _run_key(settings) -> str:
     from polygeo.runs import fingerprint
 
     m = settings.model  # a garment file is keyed by its path (in the settings) alone
-    data = "" if m.garment_file is not None else data_digest(m.garment, settings.shapes,
-                                                             settings.seed)
+    data = "" if m.garment_file is not None else ev.data_digest(m.garment, settings.shapes,
+                                                                settings.seed)
     return fingerprint({"settings": settings.key_dict(), "data": data})
 
 
@@ -359,7 +335,7 @@ def plan(args, cases) -> dict:
                 same = "auto" if inext == "schedule" else inext  # = the methods' GAPS model
                 need[(g, "gaps", inext)] = (train_settings(g, "gaps", same), steps,
                                             f"gaps, inext={inext}")
-    if "sweep" in sec:
+    if "sweep" in sec and not args.sweep_models:
         steps = budget_of("tshirt", args.steps)
         for w, d in args.sweep:
             need[("sweep", w, d)] = (train_settings("tshirt", "gaps", "auto", w, d), steps,
@@ -480,7 +456,13 @@ def section_ablations(args, ev_: Evaluator, need: dict, cache: Path) -> dict:
 
 
 def section_sweep(args, ev_: Evaluator, need: dict, cache: Path) -> dict:
-    """Width x depth of the GAPS T-shirt; parsimony within 10 % of the best E_dist."""
+    """Width x depth of the GAPS T-shirt; parsimony within 10 % of the best E_dist.
+
+    With ``--sweep-models``: the given model files instead (e.g. the shipped models of two
+    sizes, each trained on its own recorded budget), parsimony per garment.
+    """
+    if args.sweep_models:
+        return sweep_given(args.sweep_models, ev_, args.garments)
     rows = []
     for w, d in args.sweep:
         st, steps, label = need[("sweep", w, d)]
@@ -491,6 +473,29 @@ def section_sweep(args, ev_: Evaluator, need: dict, cache: Path) -> dict:
           f"{pick['e_dist_cm_mean']:.3f} cm; best {best:.3f} cm)")
     return {"models": rows, "criterion": f"fewest parameters with E_dist <= {1 + PARSIMONY:g} x "
             "best", "best_e_dist_cm": best, "parsimonious": pick["label"]}
+
+
+def sweep_given(paths: list, ev_: Evaluator, garments: list) -> dict:
+    """Parsimony over given model files, per garment (``{"garments": {g: {...}}, ...}``)."""
+    from draping.gaps import load_model
+
+    out = {}
+    for path in paths:
+        m = load_model(path)
+        g = m.settings.garment
+        if g in garments:
+            label = f"{m.settings.width}x{m.settings.depth}"
+            out.setdefault(g, []).append(model_record(Path(path), ev_, label))
+    res = {}
+    for g, rows in out.items():
+        pick, best = parsimonious(rows)
+        _print_rows(f"{g} sweep (given models)", rows)
+        print(f"parsimony: {pick['label']} ({pick['params']} parameters, E_dist "
+              f"{pick['e_dist_cm_mean']:.3f} cm; best {best:.3f} cm)")
+        res[g] = {"models": rows, "best_e_dist_cm": best, "parsimonious": pick["label"],
+                  "within": {r["label"]: float(r["e_dist_cm_mean"]) / best - 1.0 for r in rows}}
+    return {"garments": res, "given": True,
+            "criterion": f"fewest parameters with E_dist <= {1 + PARSIMONY:g} x best"}
 
 
 def parsimonious(rows: list, key: str = "e_dist_cm_mean", tol: float = PARSIMONY):
@@ -552,24 +557,27 @@ def chart_methods(res: dict, path: Path) -> None:
 
 
 def chart_sweep(res: dict, path: Path) -> None:
+    """E_dist against parameters per size; one panel per garment for a given-model sweep."""
     import matplotlib.pyplot as plt
 
-    rows = res["models"]
-    fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
-    for r in rows:
-        pick = r["label"] == res["parsimonious"]
-        ax.scatter(r["params"], r["e_dist_cm_mean"], marker="*" if pick else "o",
-                   s=160 if pick else 40, c="C3" if pick else "C0")
-        ax.annotate(f"{r['label']} ({r['ms_per_frame']:.1f} ms)",
-                    (r["params"], r["e_dist_cm_mean"]), fontsize=7)
-    ax.axhline((1 + PARSIMONY) * res["best_e_dist_cm"], ls="--", c="gray", lw=0.8,
-               label="best + 10 %")
-    ax.set_xscale("log")
-    ax.set_xlabel("parameters (GRU + output basis)")
-    ax.set_ylabel("E_dist to reference (cm)")
-    ax.set_title("GAPS T-shirt: GRU width x depth (star: parsimonious)")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    panels = res["garments"] if "garments" in res else {"tshirt": res}
+    fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 4), dpi=100,
+                             squeeze=False)
+    for ax, (g, r0) in zip(axes[0], panels.items()):
+        for r in r0["models"]:
+            pick = r["label"] == r0["parsimonious"]
+            ax.scatter(r["params"], r["e_dist_cm_mean"], marker="*" if pick else "o",
+                       s=160 if pick else 40, c="C3" if pick else "C0")
+            ax.annotate(f"{r['label']} ({r['ms_per_frame']:.1f} ms, {r['steps']} steps)",
+                        (r["params"], r["e_dist_cm_mean"]), fontsize=7)
+        ax.axhline((1 + PARSIMONY) * r0["best_e_dist_cm"], ls="--", c="gray", lw=0.8,
+                   label="best + 10 %")
+        ax.set_xscale("log")
+        ax.set_xlabel("parameters (GRU + output basis)")
+        ax.set_ylabel("E_dist to reference (cm)")
+        ax.set_title(f"GAPS {g}: GRU width x depth (star: parsimonious)", fontsize=9)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
@@ -696,6 +704,10 @@ def parse(argv=None) -> argparse.Namespace:
     ap.add_argument("--sweep", type=_sweep_arg, default=None,
                     help="width x depth list, e.g. 32x1,64x2 (default: " +
                     ",".join(f"{w}x{d}" for w, d in SWEEP) + ")")
+    ap.add_argument("--sweep-models", nargs="+", default=None, metavar="PATH",
+                    help="sweep section: score these model files (any sizes, each on its own "
+                    "recorded budget, e.g. shipped models) instead of training --sweep; "
+                    "parsimony per garment")
     ap.add_argument("--workers", type=int, default=1, help="processes for training/references")
     ap.add_argument("--cache", type=Path, default=None, help="models and references")
     ap.add_argument("--out", type=Path, default=RESULTS)

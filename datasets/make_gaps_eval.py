@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import os
 import sys
 import time
@@ -156,6 +157,29 @@ def rest_digest(name: str, shape: tuple) -> str:
     from draping.garments import garment
 
     return garment_digest(shape_case(garment(name), AnnyBody.load(), shape).garment)
+
+
+@functools.cache
+def data_digest(garment_name: str, shapes: int, seed: int, probes: int = 2) -> str:
+    """SHA-256 of what a run trains on: the template and its first ``probes`` shape fits.
+
+    The rest garments of the first training shapes (:func:`draping.gaps.random_shapes` with
+    the run's ``shapes`` and ``seed``), carried over as the trainer does: a changed template
+    or a changed :func:`draping.garments.fit_garment_to_shape` changes it (cached per
+    process: call ``data_digest.cache_clear()`` after changing either in a live process).
+    """
+    import hashlib
+
+    from draping.body import AnnyBody
+    from draping.gaps import random_shapes, shape_case
+    from draping.garments import garment
+
+    g = garment(garment_name)
+    h = hashlib.sha256(garment_digest(g).encode())
+    body = AnnyBody.load()
+    for s in random_shapes(shapes, seed)[:probes]:
+        h.update(garment_digest(shape_case(g, body, s).garment).encode())
+    return h.hexdigest()
 
 
 def _key(case: EvalCase) -> str:

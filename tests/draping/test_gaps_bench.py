@@ -124,17 +124,17 @@ def test_reference_key_follows_the_carried_rest_garment(ev, monkeypatch):
     assert ev.reference_dir(Path("/cache"), c) != folder  # drapes of the old fit not re-used
 
 
-def test_model_key_follows_the_training_data(bm, monkeypatch):
+def test_model_key_follows_the_training_data(bm, ev, monkeypatch):
     st = bm.train_settings("skirt", width=32, depth=1)
-    bm.data_digest.cache_clear()
+    ev.data_digest.cache_clear()
     path = bm.model_path(st, 100, Path("/cache"))
     assert bm.model_path(st, 100, Path("/cache")) == path
     _moved_fit(monkeypatch)
-    bm.data_digest.cache_clear()
+    ev.data_digest.cache_clear()
     try:
         assert bm.model_path(st, 100, Path("/cache")) != path  # a changed fit retrains
     finally:
-        bm.data_digest.cache_clear()
+        ev.data_digest.cache_clear()
     other = bm.train_settings("skirt", width=64, depth=1)
     assert bm.model_path(other, 100, Path("/cache")) != path
 
@@ -160,3 +160,34 @@ def test_recorded_paths_carry_no_machine_paths(bm):
     cached = Path.home() / ".cache" / "polygeo" / "m.pt"
     assert bm._portable(cached) == "~/.cache/polygeo/m.pt"
     assert bm._recorded(bm._portable(cached)) == cached
+
+
+def test_sweep_of_given_models_picks_per_garment_and_charts(bm, monkeypatch, tmp_path):
+    import types
+
+    import draping.gaps as gaps
+
+    sizes = {"a": ("tshirt", 32, 1, 100, 1.05), "b": ("tshirt", 128, 2, 300, 1.00),
+             "c": ("dress", 32, 1, 100, 1.30), "d": ("dress", 128, 2, 300, 1.00),
+             "e": ("skirt", 32, 1, 100, 1.00)}
+
+    def load(path):
+        g, w, d, _, _ = sizes[path]
+        return types.SimpleNamespace(settings=types.SimpleNamespace(garment=g, width=w, depth=d))
+
+    def record(path, ev_, label):
+        _, _, _, params, e = sizes[str(path)]
+        return {"label": label, "params": params, "e_dist_cm_mean": e, "steps": 10,
+                "eps_e_mean": 1.0, "eps_a_mean": 1.0, "eps_c_mean": 0.0, "eps_c_max": 0.0,
+                "e_norm_deg_mean": 1.0, "ms_per_frame": 0.2, "ms_per_frame_with_posing": 1.0,
+                "train_cpu_minutes": 1.0}
+
+    monkeypatch.setattr(gaps, "load_model", load)
+    monkeypatch.setattr(bm, "model_record", record)
+    res = bm.sweep_given(list(sizes), None, ["tshirt", "dress"])
+    assert set(res["garments"]) == {"tshirt", "dress"}  # the skirt was not asked for
+    assert res["garments"]["tshirt"]["parsimonious"] == "32x1"  # 5 % off the best
+    assert res["garments"]["dress"]["parsimonious"] == "128x2"  # 30 % off: not within 10 %
+    assert abs(res["garments"]["dress"]["within"]["32x1"] - 0.30) < 1e-12
+    bm.chart_sweep(res, tmp_path / "sweep.png")
+    assert (tmp_path / "sweep.png").stat().st_size > 1000
