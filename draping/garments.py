@@ -54,6 +54,7 @@ from draping.garment_fit import (
     relax_folds,
     remesh,
     room,
+    smooth_defects,
     smooth_displacement,
     wind_outward,
 )
@@ -490,6 +491,8 @@ def make_garment(
     v, f = remesh(v, f, n_vertices, seed)
     f = wind_outward(v, f, query)
     v = fit_to_body(v, f, query, _clearance_at(b, spec, v[:, 2]), fit_iterations)
+    if spec.leg > 0 and not spec.top:
+        v = smooth_defects(v, f, query, room(v, query, _clearance_at(b, spec, v[:, 2])))
     problems = check_garment(v, f, query)
     if problems:
         raise ValueError(

@@ -222,3 +222,78 @@ def test_bad_names_and_counts():
         garment("poncho")
     with pytest.raises(ValueError, match="n_vertices"):
         make_garment("tshirt", n_vertices=10)
+
+
+def _hinge_and_corner_angles(v, f):
+    """Independent of the library: largest dihedral angle between faces sharing an edge and
+    smallest corner angle (degrees), by brute force over the edge-to-face map."""
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    owners = {}
+    for i, t in enumerate(f):
+        for a, b in ((t[0], t[1]), (t[1], t[2]), (t[2], t[0])):
+            owners.setdefault((min(a, b), max(a, b)), []).append(i)
+    pairs = np.array([o for o in owners.values() if len(o) == 2])
+    hinge = np.degrees(np.arccos(np.clip((n[pairs[:, 0]] * n[pairs[:, 1]]).sum(1), -1, 1)))
+    corners = []
+    for c in range(3):
+        a = v[f[:, (c + 1) % 3]] - v[f[:, c]]
+        b = v[f[:, (c + 2) % 3]] - v[f[:, c]]
+        cos = (a * b).sum(1) / np.linalg.norm(a, axis=1) / np.linalg.norm(b, axis=1)
+        corners.append(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+    return hinge.max(), np.min(corners)
+
+
+@pytest.mark.parametrize("name", ["pants", "shorts"])
+def test_shipped_legged_templates_have_no_folds_or_slivers(name):
+    """The pants' leg hems had a 163 degree hinge and a 0.6 degree sliver (fixed by
+    ``garment_fit.smooth_defects``)."""
+    g = read_garment_npz(template_path(name))
+    hinge, corner = _hinge_and_corner_angles(g.vertices, g.faces)
+    assert hinge <= 60.0
+    assert corner >= 10.0
+
+
+def test_tshirt_and_dress_templates_are_pinned():
+    """GAPS's shipped models are tied to these two templates: their content must not change
+    (regenerating them needs new models)."""
+    import hashlib
+
+    want = {
+        "tshirt": "114421d2b2565cb8e93f524c84fad9a76171d195d6c34099d9d601e9ea7cdf93",
+        "dress": "4d7060ff4ef0f83c66f5933a8b199e6fb1dfce9c22a7e6ac41366d16523a45ea",
+    }
+    for name, digest in want.items():
+        g = read_garment_npz(template_path(name))
+        data = (np.ascontiguousarray(g.vertices, np.float64).tobytes()
+                + np.ascontiguousarray(g.faces, np.int64).tobytes())
+        assert hashlib.sha256(data).hexdigest() == digest, name
+
+
+def test_smooth_defects_removes_a_spike_and_leaves_the_rest():
+    from draping.garment_fit import defect_faces, smooth_defects
+
+    n = 15
+    u, w = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="ij")
+    v = np.stack([u.ravel(), w.ravel(), np.full(n * n, 0.1)], 1)
+    a = np.array([i * n + j for i in range(n - 1) for j in range(n - 1)])
+    f = np.concatenate([np.stack([a, a + n, a + 1], 1), np.stack([a + 1, a + n, a + n + 1], 1)])
+    assert not defect_faces(v, f).any()  # a flat even grid
+    spiked = v.copy()
+    spiked[7 * n + 7, 2] += 0.3  # a spike: hinges of about 80 degrees around it
+    bad = defect_faces(spiked, f)
+    assert bad.any() and set(np.unique(f[bad])) <= set(range(5 * n, 10 * n))
+
+    def plane(points):  # the body: the half-space z < 0
+        p = np.asarray(points, dtype=np.float64)
+        closest = p * np.array([1.0, 1.0, 0.0])
+        return p[:, 2], closest, np.tile([0.0, 0.0, 1.0], (len(p), 1))
+
+    out = smooth_defects(spiked, f, plane, np.full(n * n, 0.05))
+    assert not defect_faces(out, f).any()
+    far = np.linalg.norm(v[:, :2] - v[7 * n + 7, :2], axis=1) > 0.45
+    assert np.array_equal(out[far], spiked[far])  # local: the rest does not move
+    assert out[:, 2].min() >= 0.05 - 1e-12  # nothing pushed closer than the room
+    # a sliver is flagged too
+    sliver = np.array([[0.0, 0, 0], [1, 0, 0], [0.5, 0.05, 0]])
+    assert defect_faces(sliver, np.array([[0, 1, 2]])).all()
