@@ -22,6 +22,18 @@ offset below ``BOUNDARY_OFFSET`` of their RMS distance) and the reference surfac
 
 Metrics: median normal angle (degrees, unoriented), median ``|H - H_ref|`` over the median
 ``|H_ref|`` (scale-free), CPU seconds.
+
+The reconstruction is coarser than a scan (median edge about 1.7 mm, scan spacing 0.5 mm), so
+it favours settings that smooth as much as it does. A second, resolution-free reference
+(``cross_scan``): the two scans overlap, and their noise is independent. Each scan's
+estimates at the points of the overlap are compared with the other scan's at the same
+places: a quadratic jet on the other scan's ``CROSS_REF`` nearest points (the least
+smoothing of the candidates: little bias, much variance) evaluated at the compared point.
+Independent noise adds the reference's variance equally to every setting's mean squared
+difference, so that the mean squares rank the settings as their own errors would, up to
+twice the product of the setting's bias and the reference's (small) bias. Metrics: RMS and
+median normal angle (deg), RMS of ``H - H_ref`` over the RMS of ``H_ref`` and the median
+ratio as above.
 """
 
 from __future__ import annotations
@@ -45,6 +57,8 @@ BOUNDARY_OFFSET = 0.2
 FIXED = ((50, 2), (100, 2), (200, 2), (20, 3), (50, 4), (100, 4))
 #: Jet of the reference curvature (on the zippered mesh's vertices).
 REF_JET = dict(k=40, order=4)
+#: Jet of the cross-scan reference (on the other scan's raw points).
+CROSS_REF = dict(k=12, order=2)
 
 
 def missing(scan_dir) -> list[str]:
@@ -163,8 +177,56 @@ def compare(res, sel, ref_n, ref_h, j, ref_nj=None) -> dict:
     return out
 
 
-def run_scan(name, P, V, ref_n, ref_h, settings, log=print, ref_nj=None) -> dict:
-    """Every setting on the scan ``P`` (already in the reference frame)."""
+def jet_normals_at(res, rows, X) -> np.ndarray:
+    """``(M, 3)``: normals of the jets of points ``rows`` of ``res`` at world points ``X``."""
+    from polygeo.jets import evaluate
+
+    fr, c = np.asarray(res.frame)[rows], np.asarray(res.coeffs)[rows]
+    loc = np.einsum("nji,nj->ni", fr, X - np.asarray(res.points)[rows])
+    uv = loc[:, None, :2]
+    zu, zv = evaluate(c, uv, du=1)[:, 0], evaluate(c, uv, dv=1)[:, 0]
+    n = np.stack([-zu, -zv, np.ones_like(zu)], 1)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    return np.einsum("nij,nj->ni", fr, n)
+
+
+def cross_reference(A, B) -> dict:
+    """The other scan ``B`` as the reference of ``A``'s points in the overlap.
+
+    Points of ``A`` inside ``A`` whose nearest point of ``B`` is inside ``B`` and within
+    :data:`MAX_GAP`; the :data:`CROSS_REF` jet of that point of ``B`` gives the normal at
+    the point of ``A`` and its H (sign following that normal). Returns ``rows (M,)`` into
+    ``A``, ``normals (M, 3)``, ``H (M,)``.
+    """
+    from scipy.spatial import cKDTree
+
+    from polygeo.estimate import differential_quantities
+
+    d, j = cKDTree(B).query(A)
+    rows = np.flatnonzero(inside(A) & (d < MAX_GAP) & inside(B)[j])
+    r = differential_quantities(B, orient="none", progress=False, **CROSS_REF)
+    n = jet_normals_at(r, j[rows], A[rows])
+    h = np.asarray(r.mean_curvature)[j[rows]] * np.sign(
+        np.einsum("ij,ij->i", np.asarray(r.normals)[j[rows]], n))
+    return {"rows": rows, "normals": n, "H": h}
+
+
+def compare_cross(res, cross) -> dict:
+    """Errors of an estimate against :func:`cross_reference`'s (RMS and median)."""
+    rows = cross["rows"]
+    dot = np.einsum("ij,ij->i", np.asarray(res.normals)[rows], cross["normals"])
+    ang = np.degrees(np.arccos(np.clip(np.abs(dot), 0.0, 1.0)))
+    h = np.asarray(res.mean_curvature)[rows] * np.sign(np.where(dot == 0, 1.0, dot))
+    hr = cross["H"]
+    return {"normal_rms_deg": float(np.sqrt(np.mean(ang * ang))),
+            "normal_median_deg": float(np.median(ang)),
+            "H_rms_over_rms_H": float(np.sqrt(np.mean((h - hr) ** 2) / np.mean(hr * hr))),
+            "H_err_over_median_H": float(np.median(np.abs(h - hr)) / np.median(np.abs(hr)))}
+
+
+def run_scan(name, P, V, ref_n, ref_h, settings, log=print, ref_nj=None, cross=None) -> dict:
+    """Every setting on the scan ``P`` (already in the reference frame); with ``cross``
+    (:func:`cross_reference`) also against the other scan."""
     from scipy.spatial import cKDTree
 
     from polygeo.estimate import differential_quantities
@@ -183,9 +245,16 @@ def run_scan(name, P, V, ref_n, ref_h, settings, log=print, ref_nj=None) -> dict
                "median_neighbours": float(np.median(np.asarray(r.n_neighbors)[sel])),
                "order_histogram": np.bincount(np.asarray(r.order)[sel], minlength=5).tolist(),
                **compare(r, sel, ref_n, ref_h, j[sel], ref_nj)}
+        if cross is not None:
+            row["cross_scan"] = compare_cross(r, cross)
         out["rows"].append(row)
         log(f"  {name} k={k} order={order}: normal {row['normal_median_deg']:.3f} deg, "
-            f"H {row['H_err_over_median_H']:.3f}, {cpu:.1f} CPU s")
+            f"H {row['H_err_over_median_H']:.3f}, {cpu:.1f} CPU s"
+            + ("" if cross is None else
+               f"; other scan: normal RMS {row['cross_scan']['normal_rms_deg']:.3f} deg, "
+               f"H RMS {row['cross_scan']['H_rms_over_rms_H']:.3f}"))
+    if cross is not None:
+        out["cross_scan_compared"] = int(cross["rows"].size)
     return out
 
 
@@ -218,7 +287,6 @@ def scans_section(scan_dir, log=print) -> dict:
               "scans": []}
     P0 = read_xyz_lines(d / "bun000.ply")
     ref_nj = np.asarray(ref.normals)
-    record["scans"].append(run_scan("bun000", P0, V, ref_n, ref_h, settings, log, ref_nj))
     P1 = read_xyz_lines(d / "bun045.ply")
     t, q = BUN045_CONF
     t = np.asarray(t)
@@ -231,7 +299,14 @@ def scans_section(scan_dir, log=print) -> dict:
     R0 = quat_matrix(q) if conv == "R(q)" else quat_matrix(q).T
     R, tt, hist = icp_point_to_plane(P1, V, ref_n, R0, t)
     rot = np.degrees(np.arccos(np.clip((np.trace(R.T @ R0) - 1) / 2, -1, 1)))
-    scan = run_scan("bun045", P1 @ R.T + tt, V, ref_n, ref_h, settings, log, ref_nj)
+    P1 = P1 @ R.T + tt
+    record["cross_scan_reference"] = (
+        f"the other scan: jet k={CROSS_REF['k']} order={CROSS_REF['order']} of its nearest "
+        "point, evaluated at the compared point (overlap, both inside, gap below max_gap_m)")
+    record["scans"].append(run_scan("bun000", P0, V, ref_n, ref_h, settings, log, ref_nj,
+                                    cross_reference(P0, P1)))
+    scan = run_scan("bun045", P1, V, ref_n, ref_h, settings, log, ref_nj,
+                    cross_reference(P1, P0))
     scan["alignment"] = {"conf_convention": f"x -> {conv} x + t",
                          "conf_median_gap_m": gaps,
                          "conf_rms_point_to_plane_m": hist[0],
@@ -243,26 +318,38 @@ def scans_section(scan_dir, log=print) -> dict:
 
 
 def chart(record, png) -> None:
-    """Normal and H errors per setting and scan (bars), CPU seconds in the labels."""
+    """Normal and H errors per setting and scan (bars), against the reconstruction (top) and
+    against the other scan (bottom, when measured)."""
     import matplotlib.pyplot as plt
 
     scans = record.get("scans", [])
     if not scans:
         return
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    cross = all("cross_scan" in r for sc in scans for r in sc["rows"])
+    fig, axes = plt.subplots(2 if cross else 1, 2, figsize=(12, 9 if cross else 4.5),
+                             squeeze=False)
     names = [f"k={r['k']} o={r['order']}" for r in scans[0]["rows"]]
     x = np.arange(len(names))
     w = 0.8 / len(scans)
-    for i, sc in enumerate(scans):
-        for ax, key in zip(axes, ("normal_median_deg", "H_err_over_median_H")):
-            ax.bar(x + i * w, [r[key] for r in sc["rows"]], w,
-                   label=f"{sc['scan']} ({sc['n_compared']} points)")
-    for ax, title in zip(axes, ("median normal angle to the reference (deg)",
-                                "median |H - H_ref| / median |H_ref|")):
+    panels = [(axes[0, 0], None, "normal_median_deg",
+               "median normal angle to the reconstruction (deg)"),
+              (axes[0, 1], None, "H_err_over_median_H",
+               "median |H - H_ref| / median |H_ref| (reconstruction)")]
+    if cross:
+        panels += [(axes[1, 0], "cross_scan", "normal_rms_deg",
+                    "RMS normal angle to the other scan (deg)"),
+                   (axes[1, 1], "cross_scan", "H_rms_over_rms_H",
+                    "RMS(H - H_ref) / RMS(H_ref) (other scan)")]
+    for ax, sub, key, title in panels:
+        for i, sc in enumerate(scans):
+            vals = [(r[sub] if sub else r)[key] for r in sc["rows"]]
+            n = sc.get("cross_scan_compared") if sub else sc["n_compared"]
+            ax.bar(x + i * w, vals, w, label=f"{sc['scan']} ({n} points)")
         ax.set_xticks(x + 0.4 - w / 2, names, rotation=40, ha="right")
         ax.set_title(title)
         ax.legend()
-    fig.suptitle("Stanford bunny raw scans against the zippered reconstruction")
+    fig.suptitle("Stanford bunny raw scans: against the zippered reconstruction"
+                 + (" and against each other (overlap)" if cross else ""))
     fig.tight_layout()
     fig.savefig(png, dpi=110)
     plt.close(fig)

@@ -164,7 +164,9 @@ def _nested_fits(uv, z, valid, sizes, n_orders, orders, max_conds, interpolate, 
 
     One pass of moments (up to degree ``2 max(orders)``) along the sorted rows serves every
     order: per size and order one small solve. Writes, for query ``i``, order ``j`` and size
-    ``s``: ``val[i, j, s] = (a10, a01, H)`` (``H`` to first order ``(a20 + a02) / w``),
+    ``s``: ``val[i, j, s] = (a10, a01, H, |II|^2)`` (``H`` to first order ``(a20 + a02) / w``,
+    ``|II|^2 = k1^2 + k2^2`` to first order ``4 a20^2 + 2 a11^2 + 4 a02^2``; both 0 below
+    order 2),
     ``gvar[i, j, s]`` their variances over ``sigma^2``, ``rss`` and ``dof`` of the fit, and
     ``ok`` (enough points and a condition number within ``max_conds[j]``).
     """
@@ -229,6 +231,7 @@ def _nested_fits(uv, z, valid, sizes, n_orders, orders, max_conds, interpolate, 
                 val[i, oi, si, 0] = x[1] * ih
                 val[i, oi, si, 1] = x[2] * ih
                 val[i, oi, si, 2] = 0.0
+                val[i, oi, si, 3] = 0.0
                 gvar[i, oi, si, 2] = 0.0
                 if M >= 6:
                     _g_column(L, Ld, D, M, 3, g, y, col)
@@ -238,6 +241,9 @@ def _nested_fits(uv, z, valid, sizes, n_orders, orders, max_conds, interpolate, 
                     gvar[i, oi, si, 2] = max(g33 + col[5] + 2.0 * g35, 0.0) * ih ** 4
                     w_ = math.sqrt(1.0 + (x[1] * ih) ** 2 + (x[2] * ih) ** 2)
                     val[i, oi, si, 2] = (x[3] + x[5]) * ih * ih / w_
+                    # |II|^2 = k1^2 + k2^2 to first order (second derivatives 2a20, a11, 2a02)
+                    val[i, oi, si, 3] = (4.0 * x[3] ** 2 + 2.0 * x[4] ** 2
+                                         + 4.0 * x[5] ** 2) * ih ** 4
                 ok[i, oi, si] = True
             si += 1
 
@@ -279,16 +285,17 @@ def auto_statistics(hood: Hoods, *, orders: np.ndarray, max_conds: np.ndarray,
                     interpolate: bool, sizes: np.ndarray, kframe: int) -> dict:
     """Nested fits of every order and size per query (``order="auto"`` / ``k="auto"``).
 
-    Returns ``val, gvar (Q, O, S, 3)`` (slopes ``a10, a01`` and ``H`` in the query's PCA frame,
-    and their variances over the noise variance), ``rss (Q, O, S)``, ``dof (Q, O, S)`` int64
-    and ``ok (Q, O, S)`` bool (the fit is well posed).
+    Returns ``val (Q, O, S, 4)`` (slopes ``a10, a01``, ``H`` and ``|II|^2 = k1^2 + k2^2`` in
+    the query's PCA frame), ``gvar (Q, O, S, 3)`` (the variances of the first three over the
+    noise variance), ``rss (Q, O, S)``, ``dof (Q, O, S)`` int64 and ``ok (Q, O, S)`` bool (the
+    fit is well posed).
     """
     from ._jets_common import exponents_np
 
     Q = hood.nbr.shape[0]
     O, S = orders.shape[0], sizes.shape[0]
     e = exponents_np(int(orders[-1]))
-    out = dict(val=np.zeros((Q, O, S, 3)), gvar=np.zeros((Q, O, S, 3)), rss=np.zeros((Q, O, S)),
+    out = dict(val=np.zeros((Q, O, S, 4)), gvar=np.zeros((Q, O, S, 3)), rss=np.zeros((Q, O, S)),
                dof=np.zeros((Q, O, S), dtype=np.int64), ok=np.zeros((Q, O, S), dtype=np.bool_))
     par = Q >= PARALLEL_MIN // 8
     kernel = auto_statistics_par if par else auto_statistics_ser

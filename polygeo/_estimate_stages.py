@@ -117,6 +117,8 @@ class Neighbourhoods:
             cap = None if self.auto_k else settings.sizes[0]
             self.ring = _sorted_rings(P, finite, faces, settings.rings, cap)
             kmax = self.ring[0].shape[1]
+        if self.auto_k and settings.rings is None:
+            kmax += 1  # one beyond the widest size: its margin (_estimate_auto._rank_gap)
         self.kmax = kmax
         #: neighbours queried per point (the point itself included)
         self.k_query = min(kmax, max(int(finite.sum()), 1))

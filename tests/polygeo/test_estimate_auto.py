@@ -175,3 +175,59 @@ def test_noise_attenuates_small_neighbourhood_curvature():
         ratios.append(float(np.mean(r.mean_curvature * sign) / np.mean(s.mean_curvature)))
     assert ratios[0] < 0.5 < ratios[1] < ratios[2]
     assert ratios[2] > 0.8
+
+
+def test_auto_normal_on_a_lattice_with_little_noise():
+    """A structured cylinder (not bm_jets' size) at noise 1e-4: a plane fitted on a
+    neighbourhood symmetric about the point has no bias, while a curved jet's normal moves
+    with the point's own noise along the surface. Automatic normal within 1.5x of the best
+    fixed (order, k) in hindsight, H as well."""
+    s = sy.cylinder_mesh(120, noise=1e-4, seed=51)
+    P = s.noisy_points
+    auto = differential_quantities(P, k="auto", order="auto", orient="none")
+    n_auto, h_auto = errors(auto, s)
+    n_best, h_best = best_fixed(P, s, orders=(1, 2, 3, 4), ks=(16, 32, 64, 128, 256))
+    assert n_auto < 1.5 * n_best
+    assert h_auto < 1.5 * h_best
+
+
+def test_curved_jet_normal_moves_with_the_tangential_noise():
+    """The premise of the tangential term: with isotropic noise of deviation sigma, a wide
+    quadratic fit's normal, taken where the noisy point lies, is off by about sigma |II|
+    (``|II|^2 = k1^2 + k2^2``) however many neighbours average the heights."""
+    s = sy.sphere(6000, seed=52, noise=2e-3)
+    r = differential_quantities(s.noisy_points, k=400, order=2, orient="none")
+    c = np.abs(np.einsum("ij,ij->i", r.normals, s.normals))
+    msq = float(np.mean(np.arccos(np.clip(c, 0.0, 1.0)) ** 2))
+    floor = s.noise_sigma**2 * float(np.mean(s.k1**2 + s.k2**2))
+    assert 0.7 * floor < msq < 2.0 * floor
+
+
+def test_plane_alias_and_the_share_that_follows():
+    """plane_alias: the plane's slopes against the highest order's, less the variance of the
+    difference; the share of tangential noise its neighbourhood follows is 0 for a wide
+    margin, 1 for none, 1/2 where the margin equals sigma."""
+    from polygeo._estimate_auto import _rank_gap, plane_alias
+
+    Q, O, S = 3, 2, 4
+    val = np.zeros((Q, O, S, 4))
+    val[:, 0, :, 0] = 0.3  # the plane's slope a10
+    val[:, 0, :, 1] = -0.1
+    val[:, 1, :, 3] = 2.0  # |II|^2 of the curved fit
+    v3 = np.zeros((Q, O, S, 3))
+    v3[:, 0] = 0.001
+    v3[:, 1] = 0.004
+    ok = np.ones((Q, O, S), dtype=bool)
+    ok[0, 1, 0] = False  # the curved fit not well posed at the smallest size of query 0
+    s2 = np.array([0.5, 1.0, 2.0])
+    gap = np.array([[0.0, np.sqrt(0.5), 1e6, np.inf]] * 3)
+    out = plane_alias(val, v3, ok, s2, gap)
+    expect = 0.3**2 + 0.1**2 - 2 * 0.003
+    assert np.isnan(out["alias"][0, 0])
+    np.testing.assert_allclose(out["alias"][1:], expect)
+    np.testing.assert_allclose(out["alias"][0, 1:], expect)
+    np.testing.assert_allclose(out["tangential"], 2.0 * s2)
+    np.testing.assert_allclose(out["follow"][0], [1.0, 0.5, 0.0, 1.0], atol=1e-12)
+    dist = np.array([[0.0, 1.0, 1.5, 3.0, np.inf]])
+    np.testing.assert_allclose(_rank_gap(dist, np.array([1, 2, 4, 5])),
+                               [[1.0, 0.5, np.inf, np.inf]])
