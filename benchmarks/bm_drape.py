@@ -171,7 +171,8 @@ WALK_TOLS = (3e-3, 1e-2, 2e-2, 5e-2)
 WALK_TIGHT = 1e-4
 
 
-def section_walk(quick: bool, save, garment: str = "tshirt") -> dict:
+def section_walk(quick: bool, save, garment: str = "tshirt",
+                 tols: tuple = WALK_TOLS) -> dict:
     """Stopping tolerance against cost and accuracy on the reference's real job.
 
     The 5,000-vertex T-shirt on the walk (``polygeo drape-reference --garment tshirt --motion
@@ -179,7 +180,9 @@ def section_walk(quick: bool, save, garment: str = "tshirt") -> dict:
     solved again from the same previous state at each tolerance and at ``WALK_TIGHT``, and each
     solve's distance to the tight one (mean and max over vertices, mm), CPU seconds,
     iterations and eps metrics are recorded (a per-frame replay: the solver's error over one
-    step, without the drift of a whole sequence that starts from different states).
+    step, without the drift of a whole sequence that starts from different states). Rows
+    with ``subspace`` False are plain truncated Newton at the default tolerance
+    (``SolverSettings.subspace`` off), for comparison.
     """
     import dataclasses
 
@@ -196,7 +199,7 @@ def section_walk(quick: bool, save, garment: str = "tshirt") -> dict:
     base = drape.DEFAULT_SOLVER
     states = [(fr.x, fr.v) for fr in drape.drape_frames(scene, base)]
     data = {"garment": garment, "frames": frames, "vertices": int(scene.rest.n_vertices),
-            "default_tol": base.tol, "tight_tol": WALK_TIGHT, "tols": list(WALK_TOLS),
+            "default_tol": base.tol, "tight_tol": WALK_TIGHT, "tols": list(tols),
             "rows": []}
     query = MeshQuery(scene.body_vertices[0], scene.body_faces)
     g = scene.garment
@@ -206,24 +209,29 @@ def section_walk(quick: bool, save, garment: str = "tshirt") -> dict:
         x0 = drape.initial_guess(scene, t, xp, vp, query, base)
         motion = scene.skinned[t] - scene.skinned[t - 1]
         out = {}
-        for tol in (WALK_TIGHT, *WALK_TOLS):
-            st = dataclasses.replace(base, tol=tol)
+        # the default solver at each tolerance, and plain Newton (no subspace steps) at the
+        # default tolerance
+        for key in (WALK_TIGHT, *tols, "plain"):
+            tol = base.tol if key == "plain" else key
+            st = dataclasses.replace(base, tol=tol, subspace=key != "plain" and base.subspace)
             c0 = time.process_time()
             res = reference.drape_step(scene.rest, xp, vp, scene.dt, query, st, x0=x0,
                                        body_motion=motion)
             cpu = time.process_time() - c0
             m = frame_metrics(res.x, g.vertices, g.faces, distance=query.query(res.x).distance)
-            out[tol] = (res, cpu, m)
+            out[key] = (res, cpu, m)
         x_tight = out[WALK_TIGHT][0].x.numpy()
-        for tol, (res, cpu, m) in out.items():
+        for key, (res, cpu, m) in out.items():
             d = np.linalg.norm(res.x.numpy() - x_tight, axis=1) * 1e3
             data["rows"].append({
-                "frame": t, "tol": tol, "cpu_seconds": cpu, "iterations": res.iterations,
+                "frame": t, "tol": base.tol if key == "plain" else key,
+                "subspace": key != "plain" and base.subspace,
+                "cpu_seconds": cpu, "iterations": res.iterations,
                 "converged": bool(res.converged), "eps_e": m["eps_e"], "eps_c": m["eps_c"],
                 "dist_to_tight_mm_mean": float(d.mean()), "dist_to_tight_mm_max": float(d.max()),
             })
         print(f"walk frame {t}: " + ", ".join(
-            f"{tol:g} {cpu:.2f} s" for tol, (_, cpu, _) in out.items()), flush=True)
+            f"{key} {cpu:.2f} s" for key, (_, cpu, _) in out.items()), flush=True)
         data["summary"] = _walk_summary(data["rows"])
         save(data)
     return data
@@ -231,11 +239,11 @@ def section_walk(quick: bool, save, garment: str = "tshirt") -> dict:
 
 def _walk_summary(rows: list) -> list:
     out = []
-    for tol in sorted({r["tol"] for r in rows}):
-        rr = [r for r in rows if r["tol"] == tol]
+    for tol, sub in sorted({(r["tol"], r.get("subspace", False)) for r in rows}):
+        rr = [r for r in rows if r["tol"] == tol and r.get("subspace", False) == sub]
         cpu = np.array([r["cpu_seconds"] for r in rr])
         out.append({
-            "tol": tol, "frames": len(rr), "cpu_s_mean": float(cpu.mean()),
+            "tol": tol, "subspace": sub, "frames": len(rr), "cpu_s_mean": float(cpu.mean()),
             "cpu_s_median": float(np.median(cpu)), "cpu_s_max": float(cpu.max()),
             "iterations_mean": float(np.mean([r["iterations"] for r in rr])),
             "all_converged": bool(all(r["converged"] for r in rr)),
@@ -251,7 +259,9 @@ def _walk_summary(rows: list) -> list:
 def chart_walk(data: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
-    summ = [s for s in data["summary"] if s["tol"] != data["tight_tol"]]
+    summ = [s for s in data["summary"]
+            if s["tol"] != data["tight_tol"] and s.get("subspace", True)]
+    plain = [s for s in data["summary"] if not s.get("subspace", True)]
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     cpu = [s["cpu_s_mean"] for s in summ]
     ax = axes[0]
@@ -261,6 +271,12 @@ def chart_walk(data: dict, path: Path) -> None:
     ax.loglog(cpu, [s["dist_mm_max"] for s in summ], "^-", label="max over vertices (worst frame)")
     for s in summ:
         ax.annotate(f"tol {s['tol']:g}", (s["cpu_s_mean"], s["dist_mm_max"]), fontsize=7)
+    for s in plain:
+        for key, mark in (("dist_mm_mean", "o"), ("dist_mm_max_median", "s"),
+                          ("dist_mm_max", "^")):
+            ax.loglog([s["cpu_s_mean"]], [s[key]], mark, mfc="none", color="k")
+        ax.annotate(f"plain Newton, tol {s['tol']:g}", (s["cpu_s_mean"], s["dist_mm_max"]),
+                    fontsize=7)
     ax.axhline(1.0, color="gray", ls=":", lw=0.8)
     ax.set_xlabel("CPU seconds per frame, mean (1 thread)")
     ax.set_ylabel(f"distance to a tol {data['tight_tol']:g} solve (mm)")
@@ -268,9 +284,10 @@ def chart_walk(data: dict, path: Path) -> None:
                  fontsize=9)
     ax.legend(fontsize=7)
     ax = axes[1]
-    tols = [s["tol"] for s in data["summary"]]
-    ax.boxplot([[r["cpu_seconds"] for r in data["rows"] if r["tol"] == t] for t in tols],
-               tick_labels=[f"{t:g}" for t in tols])
+    keys = [(s["tol"], s.get("subspace", True)) for s in data["summary"]]
+    ax.boxplot([[r["cpu_seconds"] for r in data["rows"]
+                 if (r["tol"], r.get("subspace", True)) == k] for k in keys],
+               tick_labels=[f"{t:g}" + ("" if sub else "\nplain") for t, sub in keys])
     ax.axhline(1.0, color="gray", ls=":", lw=0.8, label="target 1 s")
     ax.set_xlabel("tolerance (residual force / weight)")
     ax.set_ylabel("CPU seconds per dynamic frame")
@@ -613,6 +630,9 @@ def main(argv: list[str] | None = None) -> None:
     )
     p.add_argument("--quick", action="store_true", help="smallest sizes only")
     p.add_argument("--out", type=Path, default=RESULTS, help="results folder")
+    p.add_argument("--walk-tols", default=None,
+                   help="comma-separated tolerances of the walk section (default: "
+                        f"{','.join(f'{t:g}' for t in WALK_TOLS)})")
     p.add_argument(
         "--newton-python",
         default=None,
@@ -633,6 +653,7 @@ def main(argv: list[str] | None = None) -> None:
         command = (
             f"python benchmarks/bm_drape.py --sections {name}"
             + (" --quick" if a.quick else "")
+            + (f" --walk-tols {a.walk_tols}" if name == "walk" and a.walk_tols else "")
             + (
                 " --newton-python PYTHON_WITH_NEWTON"  # no machine paths in the record
                 if name == "newton" and a.newton_python
@@ -648,6 +669,8 @@ def main(argv: list[str] | None = None) -> None:
             path.write_text(json.dumps(record, indent=1))
 
         kw = {"newton_python": a.newton_python} if name == "newton" else {}
+        if name == "walk" and a.walk_tols:
+            kw = {"tols": tuple(float(t) for t in a.walk_tols.split(","))}
         data = run(a.quick, save, **kw)
         save(data)
         chart(data, a.out / f"bm_drape_{name}.png")
