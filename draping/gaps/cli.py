@@ -62,8 +62,8 @@ def register_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--inextensibility", default="auto", choices=_INEXTENSIBILITY,
                    help="L_inext: schedule (eq. 45), one (k_ext = 1), none; auto: schedule for "
                    "gaps, none for the baselines (default auto)")
-    p.add_argument("--width", type=int, default=None, help="GRU width (default 128)")
-    p.add_argument("--depth", type=int, default=None, help="GRU layers (default 2)")
+    p.add_argument("--width", type=int, default=None, help="GRU width (default 32)")
+    p.add_argument("--depth", type=int, default=None, help="GRU layers (default 1)")
     p.add_argument("--rank", type=int, default=None,
                    help="output basis size, 0 for a full width x 3V layer (default 64)")
     p.add_argument("--skin-smoothing", type=int, default=None, metavar="N",

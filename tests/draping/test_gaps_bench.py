@@ -191,3 +191,20 @@ def test_sweep_of_given_models_picks_per_garment_and_charts(bm, monkeypatch, tmp
     assert abs(res["garments"]["dress"]["within"]["32x1"] - 0.30) < 1e-12
     bm.chart_sweep(res, tmp_path / "sweep.png")
     assert (tmp_path / "sweep.png").stat().st_size > 1000
+
+
+def test_default_size_is_the_recorded_parsimony_pick(bm):
+    """GapsSettings' default width x depth is what the sweep at the shipped budget picked
+    (recomputed from the recorded E_dist of each size, on every swept garment)."""
+    import json
+
+    from draping.gaps import GapsSettings
+
+    rec = json.loads((ROOT / "benchmarks" / "results" / "bm_gaps_sweep_shipped.json")
+                     .read_text())["sweep"]
+    default = f"{GapsSettings().width}x{GapsSettings().depth}"
+    assert set(rec["garments"]) == {"tshirt", "dress"}
+    for g, r in rec["garments"].items():
+        assert len(r["models"]) >= 2, g
+        pick, best = bm.parsimonious(r["models"])
+        assert pick["label"] == r["parsimonious"] == default, g
