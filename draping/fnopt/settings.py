@@ -38,10 +38,11 @@ HANDLE_DISTRIBUTIONS = ("random", "corners-interior")
 class TrainSettings:
     """Settings of ``polygeo train-fnopt`` (the fingerprint of a resumable run).
 
-    The defaults reproduce the shipped ``draping/data/fnopt_model.pt``: width 16 and 8 modes
-    from the parsimony sweep (``benchmarks/fnopt_sweep.py``, run with the earlier line-step
-    training: widths 16 and 32 with 8 modes and width 32 with 4 modes reached the same
-    validation sub-optimality), 7000 steps, handle sets drawn by :func:`random_handles`
+    The defaults reproduce the shipped ``draping/data/fnopt_model.pt``: width 16 and 8 modes,
+    the pick of the parsimony sweep at this budget (``benchmarks/fnopt_sweep.py --steps 7000``:
+    16x4 / 16x8 / 32x4 / 32x8 / 64x4 reached validation sub-optimality 0.031 / 0.028 / 0.042 /
+    0.028 / 0.032; the fewest parameters within 10 % of the best), 7000 steps, handle sets
+    drawn by :func:`random_handles`
     (``handles="random"``; ``"corners-interior"`` was the distribution of the first weights),
     the subspace step (``step_rule``, the only rule: :func:`draping.fnopt.model.subspace_update`
     differentiated through).
