@@ -347,6 +347,38 @@ def fold_faces(v: np.ndarray, f: np.ndarray, reference: np.ndarray, max_fold: fl
     return bad | ((m < min_angle) & (m < 0.5 * m0))
 
 
+def _relax_flagged(v: np.ndarray, f: np.ndarray, query, flagged, space: np.ndarray, *,
+                   keep_rest_out: bool, rounds: int, iterations: int) -> np.ndarray:
+    """Local smoothing of flagged faces (the loop of relax_folds and smooth_defects).
+
+    Each round, the vertices of the faces ``flagged(v)`` (F,) bool marks, and a neighbourhood
+    that grows by one ring per round (from two), get ``iterations`` Laplacian steps (rims along
+    themselves), each followed by the projection of that region out to ``space`` (V,) off the
+    body; with ``keep_rest_out`` the other vertices are kept out of the body, otherwise they do
+    not move. Stops when no face is flagged or after ``rounds`` rounds.
+    """
+    mean, _ = mean_operators(f, len(v))
+    adj = vertex_adjacency(f, len(v))
+    region = np.zeros(len(v), bool)
+    for r in range(rounds):
+        bad = flagged(v)
+        if not bad.any():
+            break
+        near = np.zeros(len(v), bool)
+        near[f[bad].ravel()] = True
+        for _ in range(2 + r):
+            near |= (adj @ near.astype(float)) > 0
+        region |= near
+        for _ in range(iterations):
+            v = v.copy()
+            v[region] += 0.5 * (mean @ v - v)[region]
+            if keep_rest_out:
+                v = project_out(v, query, np.where(region, space, 0.0))
+            else:
+                v = np.where(region[:, None], project_out(v, query, space), v)
+    return v
+
+
 def relax_folds(v: np.ndarray, f: np.ndarray, query, room: np.ndarray, reference: np.ndarray,
                 rounds: int = 10, iterations: int = 10) -> np.ndarray:
     """Smooth out folds and slivers (:func:`fold_faces`) left by a fit, locally.
@@ -358,24 +390,8 @@ def relax_folds(v: np.ndarray, f: np.ndarray, query, room: np.ndarray, reference
     region do not move (unless inside the body). Stops when no face is flagged or after
     ``rounds`` rounds; returns the ``(V, 3)`` vertices.
     """
-    mean, _ = mean_operators(f, len(v))
-    adj = vertex_adjacency(f, len(v))
-    region = np.zeros(len(v), bool)
-    for r in range(rounds):
-        bad = fold_faces(v, f, reference)
-        if not bad.any():
-            break
-        near = np.zeros(len(v), bool)
-        near[f[bad].ravel()] = True
-        for _ in range(2 + r):
-            near |= (adj @ near.astype(float)) > 0
-        region |= near
-        space = np.where(region, 0.5 * room, 0.0)  # the rest only kept out of the body
-        for _ in range(iterations):
-            v = v.copy()
-            v[region] += 0.5 * (mean @ v - v)[region]
-            v = project_out(v, query, space)
-    return v
+    return _relax_flagged(v, f, query, lambda x: fold_faces(x, f, reference), 0.5 * room,
+                          keep_rest_out=True, rounds=rounds, iterations=iterations)
 
 
 #: Template quality a generated garment with legs is held to (:func:`smooth_defects`):
@@ -391,13 +407,7 @@ def defect_faces(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     bad = np.zeros(len(f), bool)
     sharp = np.degrees(np.abs(np.asarray(h.angle))) > MAX_HINGE_DEG
     bad[np.asarray(h.faces)[sharp].ravel()] = True
-    t = v[f]
-    for c in range(3):
-        a, e = t[:, (c + 1) % 3] - t[:, c], t[:, (c + 2) % 3] - t[:, c]
-        ang = np.degrees(np.arctan2(np.linalg.norm(np.cross(a, e), axis=1),
-                                    np.einsum("ij,ij->i", a, e)))
-        bad |= ang < MIN_CORNER_DEG
-    return bad
+    return bad | (_min_angles(v, f) < MIN_CORNER_DEG)
 
 
 def smooth_defects(v: np.ndarray, f: np.ndarray, query, space: np.ndarray,
@@ -412,24 +422,8 @@ def smooth_defects(v: np.ndarray, f: np.ndarray, query, space: np.ndarray,
     out to ``space`` (V,) off the body; the rest do not move. Stops when no face is flagged
     or after ``rounds`` rounds.
     """
-    mean, _ = mean_operators(f, len(v))
-    n = len(v)
-    adj = vertex_adjacency(f, n)
-    region = np.zeros(n, bool)
-    for r in range(rounds):
-        bad = defect_faces(v, f)
-        if not bad.any():
-            break
-        near = np.zeros(n, bool)
-        near[f[bad].ravel()] = True
-        for _ in range(2 + r):
-            near |= (adj @ near.astype(float)) > 0
-        region |= near
-        for _ in range(iterations):
-            v = v.copy()
-            v[region] += 0.5 * (mean @ v - v)[region]
-            v = np.where(region[:, None], project_out(v, query, space), v)
-    return v
+    return _relax_flagged(v, f, query, lambda x: defect_faces(x, f), space,
+                          keep_rest_out=False, rounds=rounds, iterations=iterations)
 
 
 def wind_outward(v: np.ndarray, f: np.ndarray, query) -> np.ndarray:
