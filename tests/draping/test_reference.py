@@ -61,7 +61,7 @@ def test_fused_energies_and_gradients_match_torch():
         e = torch_fn(xt)
         (g,) = torch.autograd.grad(e, xt)
         ef, gf, _ = fused_fn(x)
-        assert ef == pytest.approx(float(e), rel=1e-12)
+        assert ef == pytest.approx(float(e.detach()), rel=1e-12)
         np.testing.assert_allclose(gf, g.numpy(), rtol=0, atol=1e-12 * np.abs(gf).max())
 
 
