@@ -95,6 +95,9 @@ def register_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--shapes", type=int, default=None, metavar="N",
                    help="training body shapes, phenotypes drawn uniformly in [0, 1] (default "
                    "128)")
+    p.add_argument("--collision-stiffness", type=float, default=None, metavar="K",
+                   help="k_c of the cubic body-collision loss, eq. (40), in J/m^3 (default 1e4; "
+                   "the shipped dress uses 1e5)")
     p.add_argument("-o", "--out", required=True, metavar="DIR", help="run folder")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in DIR (same settings); without it DIR starts afresh")
@@ -113,7 +116,8 @@ def _settings(args):
         if getattr(args, k) is not None:
             mk[k] = getattr(args, k)
     tk = {"seed": args.seed, "init": args.init}
-    for k in ("random_motions", "lr", "lr_epochs", "burn_in", "shapes", "grad_clip"):
+    for k in ("random_motions", "lr", "lr_epochs", "burn_in", "shapes", "grad_clip",
+              "collision_stiffness"):
         if getattr(args, k) is not None:
             tk[k] = getattr(args, k)
     if args.batch is not None:

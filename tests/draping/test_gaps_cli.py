@@ -21,7 +21,7 @@ def test_help_documents_options_and_units():
     t = _help("train-drape")
     for opt in ("--method", "--garment", "--garment-file", "--minutes", "--steps", "--seed",
                 "--resume", "-o", "--width", "--depth", "--rank", "--inextensibility",
-                "--skin-smoothing"):
+                "--skin-smoothing", "--collision-stiffness"):
         assert opt in t, opt
     for word in ("minutes", "snug", "ncs", "held", "eps_c", "CPU"):
         assert word in t, word
@@ -111,3 +111,19 @@ def test_option_choices_are_the_library_names():
         acts = {a.dest: a for a in sub.choices[cmd]._actions}
         assert {"motion", "motion_file", "frames", "shape", "seed"} <= set(acts)
         assert acts["motion"].default == "walk" and acts["seed"].default == 0
+
+
+def test_collision_stiffness_option(capsys, tmp_path):
+    """``--collision-stiffness`` sets k_c of eq. (40) (the shipped dress uses 1e5); left out, the
+    library default; a negative value is refused with one line naming it."""
+    from draping.gaps import TrainSettings
+    from draping.gaps.cli import _settings
+
+    parser = build_parser()
+    base = ["train-drape", "--garment", "dress", "-o", str(tmp_path / "r")]
+    args = parser.parse_args([*base, "--collision-stiffness", "1e5"])
+    assert _settings(args).collision_stiffness == 1e5
+    assert _settings(parser.parse_args(base)).collision_stiffness == \
+        TrainSettings().collision_stiffness
+    assert "collision_stiffness" in _fails(capsys, [*base, "--collision-stiffness", "-1"])
+    assert not (tmp_path / "r" / "checkpoint.pt").exists()
