@@ -45,6 +45,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--out", required=True, help="run folder")
     g = p.add_argument_group("settings (defaults: draping.fnopt.settings.TrainSettings)")
     for f in fields(TrainSettings):
+        if isinstance(f.default, bool):         # --normal / --no-normal
+            g.add_argument("--" + f.name.replace("_", "-"), dest=f.name, default=f.default,
+                           action=argparse.BooleanOptionalAction,
+                           help=f"default {f.default!r}")
+            continue
         g.add_argument("--" + f.name.replace("_", "-"), dest=f.name,
                        type=type(f.default), default=f.default,
                        help=f"default {f.default!r}")

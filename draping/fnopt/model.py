@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from .solvers import StepProblem, laplace_preconditioner, subspace_solve
+from .solvers import StepProblem, laplace_preconditioner, normal_preconditioner, subspace_solve
 
 __all__ = ["FNOConfig", "SpectralConv2d", "FNO", "features", "fno_correction", "fno_direction",
            "fnopt_iteration", "subspace_update", "solve_fnopt", "STEPS",
@@ -35,16 +35,26 @@ N_INPUTS = 15
 
 @dataclass(frozen=True)
 class FNOConfig:
-    """FNO hyper-parameters (thesis: 4 layers, 8 x 8 modes, width 64, projection 64)."""
+    """FNO hyper-parameters (thesis: 4 layers, 8 x 8 modes, width 64, projection 64).
+
+    ``normal``: the step the weights were trained with searches the out-of-plane direction of
+    :func:`draping.fnopt.solvers.normal_preconditioner` too (:func:`subspace_update`); part of
+    the config because the weights are trained for one step rule (default ``False``: the
+    weights recorded without the field).
+    """
 
     width: int = 32
     modes: int = 8
     layers: int = 4
     projection: int = 64
+    normal: bool = False
 
     def __post_init__(self) -> None:
         for k, v in asdict(self).items():
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            if k == "normal":
+                if not isinstance(v, bool):
+                    raise TypeError(f"FNOConfig.normal: expected a bool, got {v!r}")
+            elif isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"FNOConfig.{k}: expected an int >= 1, got {v!r}")
 
 
@@ -203,7 +213,7 @@ STEPS = ("line", "subspace")
 
 
 def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
-                    create_graph: bool = False):
+                    create_graph: bool = False, zn=None):
     """FNOpt's update: the classical PCG step's subspace plus the FNO's proposal.
 
     The span of the preconditioned steepest descent ``-z``, the previous update (PCG's memory)
@@ -220,6 +230,10 @@ def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
     trained that way: worse on the diagonal and mid-edges layouts at 64x64 (e_CD x 1e3 10.6 and
     14.1 against 6.0 and 9.5, 60 frames).
 
+    ``zn`` (weights with ``config.normal``): the out-of-plane preconditioned gradient
+    (:func:`draping.fnopt.solvers.normal_preconditioner`); ``-zn`` joins the classical
+    directions (then ``solve_pcg(..., normal=True)``'s step).
+
     Returns
     -------
     tuple
@@ -227,17 +241,18 @@ def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
         (m/s^2), and their model decreases ``(B,)`` (J, float64, <= 0).
     """
     f = fno_correction(model, p, z, z_prev, da_prev)
-    base = [-z * p.free, da_prev]
+    base = [-z * p.free, da_prev] + ([-zn * p.free] if zn is not None else [])
     if create_graph:
         hd = p.hessian_products(base, hvp) + [hvp(f, create_graph=True)]
     else:
         f = f.detach()
         hd = p.hessian_products(base + [f], hvp)
     dirs = base + [f]
-    (c, m), (c2, m2) = subspace_solve(g, dirs, hd, sub=2)
+    k = len(base)
+    (c, m), (c2, m2) = subspace_solve(g, dirs, hd, sub=k)
     d = torch.stack(dirs, 1)
     da = torch.einsum("bi,bihwc->bhwc", c.to(g.dtype), d)
-    da_pcg = torch.einsum("bi,bihwc->bhwc", c2[:, :2].detach().to(g.dtype), d[:, :2].detach())
+    da_pcg = torch.einsum("bi,bihwc->bhwc", c2[:, :k].detach().to(g.dtype), d[:, :k].detach())
     return da, da_pcg, m, m2
 
 
@@ -269,6 +284,7 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
     if step not in STEPS:
         raise ValueError(f"step: expected one of {list(STEPS)}, got {step!r}")
     pre = laplace_preconditioner(p)
+    pn = normal_preconditioner(p) if model.config.normal and step == "subspace" else None
     a = torch.zeros_like(p.x_prev) if a0 is None else (a0 * p.free).clone()
     z_prev = torch.zeros_like(a)
     da = torch.zeros_like(a)
@@ -283,8 +299,9 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
     for k in range(iters):
         more = k < iters - 1              # a next iteration needs the gradient at a + dn
         z = pre(g) * p.free
+        zn = pn(g) if pn is not None else None
         with torch.no_grad():
-            dn, dn_pcg, _, m_pcg = subspace_update(model, p, g, hvp, z, z_prev, da)
+            dn, dn_pcg, _, m_pcg = subspace_update(model, p, g, hvp, z, z_prev, da, zn=zn)
         nxt = _evaluate(p, a + dn, more) if (more or guard) else None
         if guard:
             bad = (nxt[0] - val).double() > m_pcg + slack * val.abs().double()

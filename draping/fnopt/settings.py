@@ -66,6 +66,7 @@ class TrainSettings:
     reset_prob: float = 0.02
     handles: str = "random"
     step_rule: str = "subspace"
+    normal: bool = False
     seed: int = 0
     eval_every: int = 1000
     checkpoint_every: int = 500

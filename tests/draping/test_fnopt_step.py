@@ -264,3 +264,109 @@ def test_folded_guard_loop_is_bit_identical_on_a_rollout(guard, overshoot, monke
     assert torch.equal(ros["new"].positions, ros["old"].positions)
     assert counts["new"] == counts["old"]
     assert (counts["new"][0] > 0) == (guard and overshoot)     # the guard's branch ran
+
+
+def _net_normal(zero: bool = True):
+    torch.manual_seed(0)
+    net = model.FNO(model.FNOConfig(width=8, modes=4, layers=2, projection=8,
+                                    normal=True)).double()
+    if zero:
+        with torch.no_grad():
+            net.proj2.weight.zero_()
+            net.proj2.bias.zero_()
+    return net
+
+
+def test_with_the_normal_direction_a_zero_fno_output_reproduces_pcg_with_it():
+    p = _cloth_problem()
+    for n in (1, 4, 10):
+        a_pcg = solvers.solve_pcg(p, n, normal=True)
+        a_fn = model.solve_fnopt(_net_normal(), p, n)
+        assert torch.allclose(a_fn, a_pcg, rtol=1e-7, atol=1e-7 * float(a_pcg.abs().max()))
+    # and the normal direction changes the step (it is not a copy of -z)
+    assert not torch.allclose(solvers.solve_pcg(p, 4, normal=True), solvers.solve_pcg(p, 4))
+
+
+def test_the_normal_direction_joins_the_classical_step():
+    p = _cloth_problem()
+    a = torch.zeros_like(p.x_prev)
+    val, g, hvp = p.grad_hvp(a)
+    z = solvers.laplace_preconditioner(p)(g) * p.free
+    zn = solvers.normal_preconditioner(p)(g)
+    da_prev = 0.1 * z
+    with torch.no_grad():
+        da, da_pcg, m, m_pcg = model.subspace_update(_net_normal(False), p, g, hvp, z, z,
+                                                     da_prev, zn=zn)
+    ref = p.subspace_step(g, [-z * p.free, da_prev, -zn * p.free], hvp)
+    assert torch.allclose(da_pcg, ref, rtol=1e-8, atol=1e-12 * float(ref.abs().max()))
+    assert float(m[0]) <= float(m_pcg[0]) + 1e-12 * abs(float(val[0]))
+
+
+def _flat_problem(res=(9, 7), orientation="horizontal"):
+    sheet = Sheet(*res)
+    x = cloth.rest_positions(sheet, orientation, torch.float64)[None]
+    idx = cloth.handle_indices("single", *res)
+    return solvers.make_problem(x, torch.zeros_like(x), idx, x[:, idx[:, 0], idx[:, 1]],
+                                sheet.hx, sheet.hy, Material(bend=2.0).tensors(1, torch.float64))
+
+
+def test_normal_preconditioner_on_a_flat_sheet():
+    p = _flat_problem()
+    pn = solvers.normal_preconditioner(p)
+    gen = torch.Generator().manual_seed(0)
+    g = torch.randn(p.x_prev.shape, generator=gen, dtype=torch.float64)
+    out = pn(g)
+    # a horizontal sheet's normal is z: in-plane parts of g are ignored, the result is along z
+    assert torch.equal(out[..., :2], torch.zeros_like(out[..., :2]))
+    g_in = g.clone()
+    g_in[..., 2] = 0.0
+    assert float(pn(g_in).abs().max()) == 0.0
+    # a uniform normal load is the constant DCT mode: no bending, inertia only (m dt^2)
+    c = torch.zeros_like(g)
+    c[..., 2] = 3.0
+    rho, h = float(p.material["density"][0]), float(p.hx[0]) * 0.5 + float(p.hy[0]) * 0.5
+    expect = 3.0 / (rho * float(p.hx[0]) * float(p.hy[0]) * p.dt ** 2)
+    assert torch.allclose(pn(c)[..., 2], torch.full_like(c[..., 2], expect), rtol=1e-12)
+    assert h > 0
+    # a non-constant load is damped by the bending term: |P g| < |g| / (m dt^2)
+    wave = torch.zeros_like(g)
+    wave[..., 2] = torch.cos(torch.pi * torch.arange(p.x_prev.shape[2]) / 2.0)[None, None]
+    assert float(pn(wave)[..., 2].abs().max()) < 0.999 * expect / 3.0
+
+
+@pytest.mark.parametrize("orientation", ["horizontal", "vertical"])
+def test_normal_preconditioner_is_symmetric_positive_semidefinite(orientation):
+    p = _cloth_problem() if orientation == "vertical" else _flat_problem()
+    pn = solvers.normal_preconditioner(p)
+    gen = torch.Generator().manual_seed(1)
+    u = torch.randn(p.x_prev.shape, generator=gen, dtype=torch.float64)
+    v = torch.randn(p.x_prev.shape, generator=gen, dtype=torch.float64)
+    uv, vu = float((u * pn(v)).sum()), float((v * pn(u)).sum())
+    assert uv == pytest.approx(vu, rel=1e-10)
+    assert float((u * pn(u)).sum()) > 0
+    # the result is parallel to the normals of the predicted positions
+    out = pn(u)[0]
+    y = (p.x_prev + p.dt * p.v_prev)[0]
+    n = torch.cross(y[1:-1, 2:] - y[1:-1, :-2], y[2:, 1:-1] - y[:-2, 1:-1], dim=-1)
+    cr = torch.cross(out[1:-1, 1:-1], n, dim=-1).norm(dim=-1)
+    assert float(cr.max()) <= 1e-9 * float(out.norm(dim=-1).max() * n.norm(dim=-1).max())
+
+
+def test_fnoconfig_normal_must_be_a_bool():
+    with pytest.raises(TypeError, match="FNOConfig.normal"):
+        model.FNOConfig(normal=1)
+
+
+def test_train_cli_parses_boolean_settings_as_flags():
+    import argparse
+
+    from draping.fnopt import cli
+    from draping.fnopt.settings import TrainSettings
+
+    ap = argparse.ArgumentParser()
+    cli.register(ap.add_subparsers())
+    assert ap.parse_args(["train-fnopt", "-o", "x"]).normal is TrainSettings().normal
+    assert ap.parse_args(["train-fnopt", "-o", "x", "--normal"]).normal is True
+    assert ap.parse_args(["train-fnopt", "-o", "x", "--no-normal"]).normal is False
+    with pytest.raises(SystemExit):
+        ap.parse_args(["train-fnopt", "-o", "x", "--normal", "False"])
