@@ -91,6 +91,13 @@ LBFGS_NAMED = {
 #: The L-BFGS variants given the DCT preconditioner FNOpt itself uses.
 PRECONDITIONED = ("lbfgs-pre",)
 
+#: The thesis' L-BFGS (section 6.3: "standard two-loop recursion", "a fixed step size", "a
+#: history size of m = 5", N iterations per time step, no line search, no stopping rule): our
+#: ``solve_lbfgs(p, n, history=5, step=1.0)``, the ``lbfgs`` rows (run in the mass-scaled
+#: variable, where the unit step is exact for the inertia term). The ratio part labels it
+#: beside the strongest variant.
+THESIS_LBFGS = "lbfgs"
+
 #: "Equal error": the metric compared (mean over the rollout's measured frames). e_3D, not
 #: e_CD: e_CD x 1e3 with 10k samples has a sampling floor of about 0.13 that every converged
 #: optimiser reaches, so it cannot rank them near convergence.
@@ -106,6 +113,9 @@ def _step(name: str, n: int, net=None, lr=None, **kw):
         return lambda p, a0: solvers.solve_pgd(p, n)
     if name == "pcg":
         return lambda p, a0: solvers.solve_pcg(p, n)
+    if name == "pcg-n":             # PCG with the classical directions of normal-config weights
+        split = net.config.normal_split if net is not None else 0
+        return lambda p, a0: solvers.solve_pcg(p, n, normal=True, split=split)
     if name == "lbfgs":
         return lambda p, a0: solvers.solve_lbfgs(p, n, step=lr or 1.0, **kw)
     if name == "lbfgs-wolfe":
@@ -250,6 +260,26 @@ def floor_table(runs: list) -> list:
     return out
 
 
+def merge_general(old: dict, rec: dict) -> dict:
+    """``rec`` (a ``general`` record) with the rows of ``old`` it did not run again.
+
+    Rows are keyed by (layout, motion, speed, optimizer, iterations); ``old`` counts only when
+    its resolution and frame count are ``rec``'s (else ``rec`` is returned unchanged). The
+    floors table is rebuilt; ``merged_from`` records ``old``'s date.
+    """
+    if (old.get("res"), old.get("frames")) != (rec["res"], rec["frames"]):
+        return rec
+
+    def key(r):
+        return json.dumps(r["layout"]), r["motion"], r["speed"], r["optimizer"], r["iters"]
+
+    new = {key(r) for r in rec["runs"]}
+    out = dict(rec, runs=[r for r in old["runs"] if key(r) not in new] + rec["runs"],
+               merged_from=old.get("date"))
+    out["floors"] = floor_table(out["runs"])
+    return out
+
+
 def part_lbfgs(args, net) -> dict:
     """L-BFGS variants over their iteration counts against FNOpt N = 10 (equal error).
 
@@ -357,7 +387,9 @@ def part_ratio(args, net) -> dict:
     ``baseline_unpreconditioned`` the same among the variants without FNOpt's DCT
     preconditioner (the thesis' kind of baseline).
     ``speedup_vs_pcg``: the same against PCG (FNOpt's step without the FNO; below 1: PCG
-    reaches FNOpt's error in less time).
+    reaches FNOpt's error in less time); ``speedup_vs_pcg_n`` against ``pcg-n`` (PCG with the
+    out-of-plane direction(s) of weights trained with them). ``thesis_lbfgs``: the thesis'
+    L-BFGS configuration (:data:`THESIS_LBFGS`), labelled beside the strongest.
     """
     rec = {"metric": EQUAL_ERROR_METRIC, "cost": "step_cpu_ms", "res": {}}
     for res in (int(v) for v in args.ratio_res.split(",")):
@@ -375,17 +407,21 @@ def part_ratio(args, net) -> dict:
         plain = min((k for k in per if at10[k] and k not in PRECONDITIONED),
                     key=lambda k: at10[k]["slow_cost"], default=None)
         pcg = [r for r in runs if r["optimizer"] == "pcg"]
+        pcg_n = [r for r in runs if r["optimizer"] == "pcg-n"]
         rec["res"][str(res)] = {"frames": it["frames"], "motion": it["motion"],
                                 "iters_json": f"bm_fnopt_iters_{res}.json", "baseline": base,
                                 "baseline_unpreconditioned": plain,
+                                "thesis_lbfgs": THESIS_LBFGS if THESIS_LBFGS in per else None,
                                 "speedup": per,
-                                "speedup_vs_pcg": equal_error_speedup(fast, pcg) if pcg else None}
+                                "speedup_vs_pcg": equal_error_speedup(fast, pcg) if pcg else None,
+                                "speedup_vs_pcg_n": (equal_error_speedup(fast, pcg_n)
+                                                     if pcg_n else None)}
     plt = _plt()
     keys = list(rec["res"])
     fig, axes = plt.subplots(1, len(keys), figsize=(5.5 * len(keys), 4), dpi=100, squeeze=False)
     for ax, res in zip(axes[0], keys):
         it = json.loads((OUT / f"bm_fnopt_iters_{res}.json").read_text())
-        for name in ["fnopt", "pcg"] + list(rec["res"][res]["speedup"]):
+        for name in ["fnopt", "pcg", "pcg-n"] + list(rec["res"][res]["speedup"]):
             rs = sorted((r for r in it["runs"] if r["optimizer"] == name and "e_3d" in r),
                         key=lambda r: r["iters"])
             if rs:
@@ -397,7 +433,7 @@ def part_ratio(args, net) -> dict:
         ax.set_xlabel("optimiser CPU ms per frame (1 thread, shared machine)")
         ax.set_ylabel("mean e_3D vs converged reference")
         lines = []
-        for key in ("baseline", "baseline_unpreconditioned"):
+        for key in ("baseline", "baseline_unpreconditioned", "thesis_lbfgs"):
             base = rec["res"][res][key]
             sp = [q for q in rec["res"][res]["speedup"].get(base, []) if q["bound"] == "="]
             lines.append(f"vs {base}: " + ", ".join(f"N{q['iters']} {q['speedup']:.1f}x"
@@ -535,6 +571,8 @@ def main() -> None:
     ap.add_argument("--plan", default="fnopt:10,pcg:10,pgd:10,lbfgs:100",
                     help="general part: optimiser:iterations, comma-separated")
     ap.add_argument("--tag", default="", help="suffix of the output names")
+    ap.add_argument("--merge", action="store_true", help="general part: replace only the rows "
+                    "run now in the existing JSON (same res and frames), keep the others")
     ap.add_argument("--lbfgs-iters", default="20,50,100,150,200,300;20,50,100,150,200,300;"
                     "100,200,300;50,100,150,200,300",
                     help="lbfgs part: iteration counts per variant (';' between variants); each "
@@ -579,6 +617,8 @@ def main() -> None:
     tag = f"{args.part}_{args.res}" if args.part not in ("super", "ratio") else args.part
     tag += f"_{args.tag}" if args.tag else ""
     path = OUT / f"bm_fnopt_{tag}.json"
+    if args.part == "general" and args.merge and path.is_file():
+        rec = merge_general(json.loads(path.read_text()), rec)
     if args.part == "iters" and path.is_file():      # merge with the runs of other invocations
         old = json.loads(path.read_text())
         if (old.get("frames"), old.get("motion"), old.get("speed")) == (
@@ -604,8 +644,10 @@ def main() -> None:
     elif args.part == "general":
         rs = [r for r in rec["runs"] if "e_cd" in r]
         names = sorted({r["optimizer"] for r in rs})
-        labels = [f"{r['layout']} x{r['speed']}" for r in rs if r["optimizer"] == names[0]]
-        curves = {n: [r["e_cd"] for r in rs if r["optimizer"] == n] for n in names}
+        cases = list(dict.fromkeys((r["layout"], r["motion"], r["speed"]) for r in rs))
+        labels = [f"{lay} {mo} x{sp}" for lay, mo, sp in cases]
+        val = {(r["layout"], r["motion"], r["speed"], r["optimizer"]): r["e_cd"] for r in rs}
+        curves = {n: [val.get((*c, n), float("nan")) for c in cases] for n in names}
         plt = _plt()
         fig, ax = plt.subplots(figsize=(7, 4), dpi=100)
         w = 0.8 / max(len(names), 1)

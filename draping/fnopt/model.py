@@ -22,7 +22,13 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from .solvers import StepProblem, laplace_preconditioner, normal_preconditioner, subspace_solve
+from .solvers import (
+    StepProblem,
+    laplace_preconditioner,
+    normal_directions,
+    normal_preconditioner,
+    subspace_solve,
+)
 
 __all__ = ["FNOConfig", "SpectralConv2d", "FNO", "features", "fno_correction", "fno_direction",
            "fnopt_iteration", "subspace_update", "solve_fnopt", "STEPS",
@@ -40,7 +46,8 @@ class FNOConfig:
     ``normal``: the step the weights were trained with searches the out-of-plane direction of
     :func:`draping.fnopt.solvers.normal_preconditioner` too (:func:`subspace_update`); part of
     the config because the weights are trained for one step rule (default ``False``: the
-    weights recorded without the field).
+    weights recorded without the field). ``normal_split``: that direction cut into its lowest
+    ``normal_split x normal_split`` DCT modes and the rest (0: one direction).
     """
 
     width: int = 32
@@ -48,10 +55,14 @@ class FNOConfig:
     layers: int = 4
     projection: int = 64
     normal: bool = False
+    normal_split: int = 0
 
     def __post_init__(self) -> None:
         for k, v in asdict(self).items():
-            if k == "normal":
+            if k == "normal_split":
+                if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                    raise ValueError(f"FNOConfig.normal_split: expected an int >= 0, got {v!r}")
+            elif k == "normal":
                 if not isinstance(v, bool):
                     raise TypeError(f"FNOConfig.normal: expected a bool, got {v!r}")
             elif isinstance(v, bool) or not isinstance(v, int) or v < 1:
@@ -230,9 +241,9 @@ def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
     trained that way: worse on the diagonal and mid-edges layouts at 64x64 (e_CD x 1e3 10.6 and
     14.1 against 6.0 and 9.5, 60 frames).
 
-    ``zn`` (weights with ``config.normal``): the out-of-plane preconditioned gradient
-    (:func:`draping.fnopt.solvers.normal_preconditioner`); ``-zn`` joins the classical
-    directions (then ``solve_pcg(..., normal=True)``'s step).
+    ``zn`` (weights with ``config.normal``): a list of further classical directions, the
+    out-of-plane preconditioned gradient's (:func:`draping.fnopt.solvers.normal_directions`);
+    they join the classical step (then ``solve_pcg(..., normal=True)``'s).
 
     Returns
     -------
@@ -241,7 +252,7 @@ def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
         (m/s^2), and their model decreases ``(B,)`` (J, float64, <= 0).
     """
     f = fno_correction(model, p, z, z_prev, da_prev)
-    base = [-z * p.free, da_prev] + ([-zn * p.free] if zn is not None else [])
+    base = [-z * p.free, da_prev] + (list(zn) if zn is not None else [])
     if create_graph:
         hd = p.hessian_products(base, hvp) + [hvp(f, create_graph=True)]
     else:
@@ -299,7 +310,7 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
     for k in range(iters):
         more = k < iters - 1              # a next iteration needs the gradient at a + dn
         z = pre(g) * p.free
-        zn = pn(g) if pn is not None else None
+        zn = normal_directions(p, g, pn, model.config.normal_split) if pn is not None else None
         with torch.no_grad():
             dn, dn_pcg, _, m_pcg = subspace_update(model, p, g, hvp, z, z_prev, da, zn=zn)
         nxt = _evaluate(p, a + dn, more) if (more or guard) else None

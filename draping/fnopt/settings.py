@@ -67,6 +67,7 @@ class TrainSettings:
     handles: str = "random"
     step_rule: str = "subspace"
     normal: bool = False
+    normal_split: int = 0
     seed: int = 0
     eval_every: int = 1000
     checkpoint_every: int = 500

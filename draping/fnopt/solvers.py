@@ -21,7 +21,7 @@ from . import cloth
 from .handles import DT, trajectory
 
 __all__ = ["StepProblem", "make_problem", "laplace_preconditioner", "normal_preconditioner",
-           "solve_pgd", "solve_pcg",
+           "low_modes", "normal_directions", "solve_pgd", "solve_pcg",
            "subspace_solve", "solve_gd", "solve_adam", "solve_lbfgs", "solve_lbfgs_wolfe",
            "solve_reference",
            "Rollout", "rollout", "CLASSICAL", "REFERENCE_TOL"]
@@ -265,14 +265,15 @@ def solve_pgd(p: StepProblem, iters: int, k_eff: float = 1.0, a0=None) -> torch.
 
 
 def solve_pcg(p: StepProblem, iters: int, k_eff: float = 1.0, a0=None,
-              normal: bool = False) -> torch.Tensor:
+              normal: bool = False, split: int = 0) -> torch.Tensor:
     """Preconditioned descent with memory (FNOpt's subspace step without the FNO).
 
     Each update minimises the quadratic model of ``L``
     over the span of the preconditioned gradient and the previous update (a nonlinear
     conjugate-gradient method with exact two-dimensional steps, DCT metric of
     :func:`laplace_preconditioner`). ``normal``: the span also holds the out-of-plane direction
-    of :func:`normal_preconditioner` (three-dimensional steps).
+    of :func:`normal_preconditioner` (three-dimensional steps; ``split``: that direction cut
+    into its low and high DCT modes, :func:`normal_directions`).
     """
     pre = laplace_preconditioner(p, k_eff)
     pn = normal_preconditioner(p) if normal else None
@@ -280,7 +281,7 @@ def solve_pcg(p: StepProblem, iters: int, k_eff: float = 1.0, a0=None,
     da = torch.zeros_like(a)
     for _ in range(iters):
         _, g, hvp = p.grad_hvp(a)
-        dirs = [-pre(g) * p.free, da] + ([-pn(g) * p.free] if normal else [])
+        dirs = [-pre(g) * p.free, da] + (normal_directions(p, g, pn, split) if normal else [])
         da = p.subspace_step(g, dirs, hvp)
         a = a + da
     return p.compose(a)
@@ -378,6 +379,29 @@ def normal_preconditioner(p: StepProblem):
         return (n * torch.from_numpy(z)[..., None]).to(g.dtype)
 
     return apply
+
+
+def low_modes(z: torch.Tensor, cut: int) -> torch.Tensor:
+    """The part of a field ``(B, H, W, C)`` in its lowest ``cut x cut`` DCT-II modes."""
+    from scipy.fft import dctn, idctn
+
+    c = dctn(z.detach().double().numpy(), type=2, axes=(1, 2), norm="ortho")
+    c[:, cut:] = 0.0
+    c[:, :, cut:] = 0.0
+    return torch.from_numpy(idctn(c, type=2, axes=(1, 2), norm="ortho")).to(z.dtype)
+
+
+def normal_directions(p: StepProblem, g: torch.Tensor, pn, split: int = 0) -> list:
+    """Descent directions from the out-of-plane preconditioned gradient ``pn(g)``.
+
+    ``split = 0``: ``[-pn(g)]``; ``split > 0``: its lowest ``split x split`` DCT modes and
+    the rest as two directions (a coarse-level part the subspace step scales on its own).
+    """
+    zn = pn(g)
+    if split <= 0:
+        return [-zn * p.free]
+    lo = low_modes(zn, split)
+    return [-lo * p.free, -(zn - lo) * p.free]
 
 
 def _two_loop(g, s_hist, y_hist, h0=None):

@@ -37,6 +37,7 @@ from .solvers import (
     StepProblem,
     laplace_preconditioner,
     make_problem,
+    normal_directions,
     normal_preconditioner,
     rollout,
     solve_lbfgs,
@@ -227,7 +228,8 @@ def train_step(model: FNO, opt, pool: Pool, s: TrainSettings, step: int) -> floa
     pre = laplace_preconditioner(p)
     _, g, hvp = p.grad_hvp(a)
     z = pre(g) * p.free
-    zn = normal_preconditioner(p)(g) if s.normal else None
+    zn = normal_directions(p, g, normal_preconditioner(p), s.normal_split) if s.normal \
+        else None
     da = subspace_update(model, p, g, hvp, z, pool.r_prev[ids], pool.da[ids],
                          create_graph=True, zn=zn)[0]
     a_new = a + da
@@ -330,7 +332,7 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(s.seed)
     gen = torch.Generator().manual_seed(s.seed)
-    cfg = FNOConfig(s.width, s.modes, s.layers, s.projection, s.normal)
+    cfg = FNOConfig(s.width, s.modes, s.layers, s.projection, s.normal, s.normal_split)
     model = FNO(cfg)
     opt = torch.optim.Adam(model.parameters(), lr=s.lr)
     fp = runs.fingerprint(asdict(s))

@@ -61,6 +61,25 @@ def test_floor_table_puts_fnopt_beside_the_floors(bm):
     assert rows[1]["floor_ref_e_cd"] is None and rows[1]["over_floor"] is None
 
 
+def test_merge_general_replaces_only_the_rows_run_again(bm):
+    def row(o, e, lay="diagonal"):
+        return {"layout": lay, "motion": "xy", "speed": 1.0, "optimizer": o,
+                "iters": 10 if o != "floor-ref" else 0, "e_cd": e}
+
+    old = {"res": 64, "frames": 60, "date": "then",
+           "runs": [row("fnopt", 6.0), row("pcg", 17.0), row("floor-ref", 0.12),
+                    row("fnopt", 2.0, "corners")]}
+    rec = {"res": 64, "frames": 60, "runs": [row("fnopt", 3.0)]}
+    out = bm.merge_general(old, rec)
+    got = {(r["layout"], r["optimizer"]): r["e_cd"] for r in out["runs"]}
+    assert got == {("diagonal", "fnopt"): 3.0, ("diagonal", "pcg"): 17.0,
+                   ("diagonal", "floor-ref"): 0.12, ("corners", "fnopt"): 2.0}
+    assert len(out["runs"]) == 4 and out["merged_from"] == "then"
+    assert out["floors"][0]["over_floor"] == pytest.approx(2.88)
+    # another resolution or frame count: nothing merged
+    assert bm.merge_general(dict(old, frames=30), rec) is rec
+
+
 def test_parsimony_pick_takes_the_smallest_model_within_ten_percent():
     spec = importlib.util.spec_from_file_location("fnopt_sweep",
                                                   ROOT / "benchmarks" / "fnopt_sweep.py")

@@ -296,7 +296,7 @@ def test_the_normal_direction_joins_the_classical_step():
     da_prev = 0.1 * z
     with torch.no_grad():
         da, da_pcg, m, m_pcg = model.subspace_update(_net_normal(False), p, g, hvp, z, z,
-                                                     da_prev, zn=zn)
+                                                     da_prev, zn=[-zn * p.free])
     ref = p.subspace_step(g, [-z * p.free, da_prev, -zn * p.free], hvp)
     assert torch.allclose(da_pcg, ref, rtol=1e-8, atol=1e-12 * float(ref.abs().max()))
     assert float(m[0]) <= float(m_pcg[0]) + 1e-12 * abs(float(val[0]))
@@ -370,3 +370,26 @@ def test_train_cli_parses_boolean_settings_as_flags():
     assert ap.parse_args(["train-fnopt", "-o", "x", "--no-normal"]).normal is False
     with pytest.raises(SystemExit):
         ap.parse_args(["train-fnopt", "-o", "x", "--normal", "False"])
+
+
+def test_low_modes_and_the_split_normal_directions():
+    gen = torch.Generator().manual_seed(2)
+    z = torch.randn(2, 9, 7, 3, generator=gen, dtype=torch.float64)
+    assert torch.allclose(solvers.low_modes(z, 9), z, atol=1e-12)
+    # a field of two cosines: the low cut keeps the slow one only
+    j = torch.arange(7, dtype=torch.float64)
+    slow = torch.cos(torch.pi * (j + 0.5) / 7)[None, None, :, None].expand(2, 9, 7, 3)
+    fast = torch.cos(5 * torch.pi * (j + 0.5) / 7)[None, None, :, None].expand(2, 9, 7, 3)
+    assert torch.allclose(solvers.low_modes(slow + fast, 3), slow, atol=1e-12)
+    p = _cloth_problem()
+    pn = solvers.normal_preconditioner(p)
+    _, g = p.loss_grad(torch.zeros_like(p.x_prev))
+    (one,) = solvers.normal_directions(p, g, pn)
+    lo, hi = solvers.normal_directions(p, g, pn, split=3)
+    assert torch.allclose(lo + hi, one, atol=1e-12 * float(one.abs().max()))
+    assert float(hi.abs().max()) > 0 and float(lo.abs().max()) > 0
+
+
+def test_fnoconfig_normal_split_must_be_a_non_negative_int():
+    with pytest.raises(ValueError, match="FNOConfig.normal_split"):
+        model.FNOConfig(normal_split=-1)
