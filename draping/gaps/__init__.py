@@ -38,6 +38,7 @@ if TYPE_CHECKING:
         stress_cases,
         template_garment,
         training_sequences,
+        validation_cases,
     )
     from .infer import (
         Drape,
@@ -78,6 +79,7 @@ __all__ = [
     "check_phenotypes",
     "garment_weights",
     "held_out_cases",
+    "validation_cases",
     "random_shapes",
     "sequence_of",
     "shape_case",

@@ -39,6 +39,7 @@ __all__ = [
     "training_sequences",
     "sequence_of",
     "held_out_cases",
+    "validation_cases",
     "stress_cases",
     "check_case",
 ]
@@ -226,6 +227,21 @@ def check_case(frames: int = 20) -> Case:
     The walk on a held-out shape, 20 frames (the shipped-model test redoes it).
     """
     return Case("walk", 0, 1.0, tuple(float(v) for v in random_shapes(1, 1005)[0]), frames)
+
+
+def validation_cases(frames: int = 60) -> list[Case]:
+    """Cases for choosing settings: training-type motions on shapes no training pool draws.
+
+    ``random`` with seeds 500-502 (a run trains on seeds ``0 .. random_motions - 1``), the walk,
+    squat and arms at their trained speed; shapes drawn with seeds 500-505 (a run's pool uses
+    its own seed, 0 by default). Disjoint from :func:`held_out_cases` (seeds >= 1000), so
+    that choices made on these never look at the held-out figures.
+    """
+    frames = check_int(frames, "frames", low=3)
+    shapes = [tuple(float(v) for v in random_shapes(1, 500 + i)[0]) for i in range(6)]
+    motions = [("random", 500), ("random", 501), ("random", 502), ("walk", 0), ("squat", 0),
+               ("arms", 0)]
+    return [Case(m, seed, 1.0, s, frames) for (m, seed), s in zip(motions, shapes)]
 
 
 def held_out_cases(frames: int = 60) -> list[Case]:

@@ -208,3 +208,36 @@ def test_default_size_is_the_recorded_parsimony_pick(bm):
         assert len(r["models"]) >= 2, g
         pick, best = bm.parsimonious(r["models"])
         assert pick["label"] == r["parsimonious"] == default, g
+
+
+def test_contacts_body_parts_and_inside_counts():
+    """``gaps_contacts``: bones map to their side's limb or the torso; on a garment with two
+    vertices pushed into the body (one deep, one on the skin's inner side of a thigh) the
+    counts, the part and the depth are those of the construction."""
+    gc = _load("gaps_contacts", ROOT / "benchmarks" / "gaps_contacts.py")
+    assert gc.body_part("upperleg01.L") == "legL" and gc.body_part("pelvis.R") == "legR"
+    assert gc.body_part("upperarm02.R") == "armR" and gc.body_part("clavicle.L") == "armL"
+    assert gc.body_part("spine04") == "torso" and gc.body_part("head") == "torso"
+    import torch
+
+    from draping.body import AnnyBody
+    from draping.collision import MeshQuery
+    from draping.gaps.infer import Drape
+
+    body = AnnyBody.load()
+    parts = gc.face_parts(body)
+    assert set(parts) == set(gc.PARTS)
+    rest = body.rest()[0][0].double()
+    q = MeshQuery(rest, body.faces)
+    vi = int(np.nonzero(np.array(body.bone_names)[body.skin_indices[:, 0].numpy()]
+                        == "upperleg01.L")[0][0])
+    far = rest[vi] + torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64)  # well away
+    n = q.query(rest[vi][None]).normal[0]
+    x = torch.stack([rest[vi] - 0.004 * n, far, far + 0.01]).float()[None].repeat(2, 1, 1)
+    x[1, 0] = far + 0.02  # outside in frame 1
+    d = Drape(x, rest.float()[None].repeat(2, 1, 1), None, {})
+    r = gc.contacts(d, body, parts, pinch=0.01)
+    assert r["inside_vertex_frames"] == 1 and r["frames_with_contact"] == 1
+    assert r["parts"]["legL"]["inside"] == 1
+    assert abs(r["depth_mm_max"] - 4.0) < 0.5
+    assert r["per_frame"] == [1, 0]

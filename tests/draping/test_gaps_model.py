@@ -245,6 +245,32 @@ def test_held_out_cases_are_not_training_data():
     assert "turn" not in TRAIN_MOTIONS and "jacks" not in TRAIN_MOTIONS
 
 
+def test_validation_cases_are_neither_training_data_nor_held_out():
+    """Validation: training-type motions with seeds a run does not train on (random 500-502),
+    shapes outside the default training pool, and nothing shared with the held-out cases."""
+    from draping.gaps import (
+        TRAIN_MOTIONS,
+        TrainSettings,
+        held_out_cases,
+        random_shapes,
+        validation_cases,
+    )
+
+    val = validation_cases(12)
+    assert len(val) == 6 and all(c.frames == 12 for c in val)
+    pool = random_shapes(TrainSettings().shapes, TrainSettings().seed)
+    held = held_out_cases(12)
+    for c in val:
+        assert c.motion in TRAIN_MOTIONS
+        assert c.motion != "random" or TrainSettings().random_motions <= c.seed < 1000
+        s = torch.tensor(c.shape)
+        assert float((pool - s).abs().max(1).values.min()) > 1e-3
+        assert all(float((torch.tensor(h.shape) - s).abs().max()) > 1e-3 for h in held)
+    assert len({c.shape for c in val}) == len(val)
+    with pytest.raises(ValueError, match="frames"):
+        validation_cases(2)
+
+
 def test_time_inference_reports_three_costs(body, trainer):
     from draping.gaps import time_inference
 

@@ -1,0 +1,238 @@
+"""Where trained draping models leave garment vertices inside the body (issue 20's dress eps_c).
+
+Not a benchmark of its own (``polygeo bench`` lists only ``bm_*.py``): a diagnosis beside
+``bm_gaps.py``. For each model and case it drapes the motion, queries the full posed Anny body
+at every garment vertex of every frame (``MeshQuery``, as ``eps_c`` does) and reports, for the
+vertices inside (signed distance < 0):
+
+* how many vertex-frames, over how many frames and distinct vertices, and how deep (mm);
+* on which body part (``torso``, ``legL``, ``legR``, ``armL``, ``armR``: the dominant bone of the
+  closest body face);
+* how many of them are *pinched*: within ``--pinch`` (m) of another body part as well (cloth
+  caught between the swinging arm and the hip, between the thighs), where no drape of a
+  garment outside both parts exists;
+* optionally (``--optimum N``) at the N worst frames of each model and case, whether the
+  training loss's own minimiser of that frame (the model's output refined by L-BFGS on eq.
+  (38)-(46), the previous two frames fixed) still has vertices inside: if not, the collisions
+  are the network's misses, not the loss's.
+
+Usage::
+
+    python benchmarks/gaps_contacts.py --models dress RUN/model.pt --labels gaps ncs \\
+        --cases held_out --frames 60 --optimum 1
+
+Writes ``benchmarks/results/gaps_contacts_<name>.json`` and a PNG bar chart of the
+vertex-frames inside per body part and model. One thread.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+from run_env import environment, finish  # noqa: E402
+
+#: Body parts a contact is attributed to (the dominant bone of the closest body face).
+PARTS = ("torso", "legL", "legR", "armL", "armR")
+_LEG = ("leg", "foot", "toe", "pelvis")
+_ARM = ("arm", "wrist", "finger", "metacarpal", "shoulder", "clavicle")
+
+
+def body_part(bone: str) -> str:
+    """The part of :data:`PARTS` a bone of the Anny skeleton belongs to."""
+    side = "L" if bone.endswith(".L") else "R" if bone.endswith(".R") else ""
+    if side and any(k in bone for k in _LEG):
+        return "leg" + side
+    if side and any(k in bone for k in _ARM):
+        return "arm" + side
+    return "torso"
+
+
+def face_parts(body) -> np.ndarray:
+    """``(F,)`` part name of every body face (dominant bone of its first vertex)."""
+    si, sw = body.skin_indices.numpy(), body.skin_weights.numpy()
+    vbone = si[np.arange(len(si)), sw.argmax(1)]
+    names = body.bone_names
+    return np.array([body_part(names[vbone[f[0]]]) for f in body.faces.numpy()])
+
+
+def contacts(drape, body, parts: np.ndarray, pinch: float) -> dict:
+    """Inside vertex-frames of one drape, by body part, depth and pinch."""
+    import torch
+
+    from draping.collision import MeshQuery
+
+    faces = body.faces.numpy()
+    x = drape.x.double()
+    bv = drape.body_vertices.double()
+    q = MeshQuery(bv[0], body.faces)
+    per_part = {p: {"inside": 0, "pinched": 0} for p in PARTS}
+    depth, frames, verts, counts = [], [], set(), []
+    for t in range(x.shape[0]):
+        q.update(bv[t])
+        r = q.query(x[t])
+        d, f = np.asarray(r.distance), np.asarray(r.face)
+        ins = np.nonzero(d < 0)[0]
+        counts.append(int(ins.size))
+        if ins.size == 0:
+            continue
+        frames.append(t)
+        verts.update(ins.tolist())
+        depth.extend((-1000.0 * d[ins]).tolist())
+        for p in PARTS:
+            sel = ins[parts[f[ins]] == p]
+            if sel.size == 0:
+                continue
+            other = MeshQuery(bv[t], torch.as_tensor(faces[parts != p]))
+            do = np.abs(np.asarray(other.query(x[t][sel], max_distance=2 * pinch).distance))
+            per_part[p]["inside"] += int(sel.size)
+            per_part[p]["pinched"] += int((do < pinch).sum())
+    n = int(sum(counts))
+    return {"inside_vertex_frames": n, "eps_c": 100.0 * n / (x.shape[0] * x.shape[1]),
+            "frames_with_contact": len(frames), "distinct_vertices": len(verts),
+            "depth_mm_mean": float(np.mean(depth)) if depth else 0.0,
+            "depth_mm_max": float(np.max(depth)) if depth else 0.0,
+            "pinched": int(sum(v["pinched"] for v in per_part.values())),
+            "parts": per_part, "per_frame": counts}
+
+
+def loss_optimum(model, drape, body, frame: int, rounds: int = 15) -> dict:
+    """Vertices inside at one frame before and after minimising the training loss there."""
+    import torch
+
+    from draping.collision import MeshQuery
+    from draping.gaps import TrainSettings, body_contacts, loss_terms
+
+    ts = TrainSettings(model=model.settings)
+    epoch = 10 ** 6  # the k_ext schedule saturated, as at the end of training
+    t = max(int(frame), 2)
+    x0 = drape.x[t - 2:t + 1].clone()
+    bv = drape.body_vertices[t - 2:t + 1]
+    q = MeshQuery(bv[0].double(), body.faces)
+    free = x0[2].clone().requires_grad_(True)
+    opt = torch.optim.LBFGS([free], lr=1, max_iter=20, line_search_fn="strong_wolfe")
+
+    def total(x, ct):
+        terms = loss_terms(x[None], drape.case, model.settings, ts, ct, epoch, 1.0 / 30.0)
+        return sum(v[0, 2] for v in terms.values())
+
+    before = float(total(x0, body_contacts(x0, bv, q, ts.query_radius)))
+    for _ in range(rounds):
+        ct = body_contacts(torch.cat([x0[:2], free[None].detach()]), bv, q, ts.query_radius)
+
+        def closure(ct=ct):
+            opt.zero_grad()
+            loss = total(torch.cat([x0[:2], free[None]]), ct)
+            loss.backward()
+            return loss
+
+        opt.step(closure)
+    x1 = torch.cat([x0[:2], free[None].detach()])
+    after = float(total(x1, body_contacts(x1, bv, q, ts.query_radius)))
+    q.update(bv[2].double())
+    d0 = np.asarray(q.query(x0[2].double()).distance)
+    d1 = np.asarray(q.query(x1[2].double()).distance)
+    return {"frame": t, "inside_model": int((d0 < 0).sum()), "inside_optimum": int((d1 < 0).sum()),
+            "loss_model_J": before, "loss_optimum_J": after,
+            "min_distance_optimum_mm": 1000.0 * float(d1.min())}
+
+
+def chart(res: dict, path: Path) -> None:
+    """Inside vertex-frames per body part (stacked: pinched hatched) for each model."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = list(res["models"])
+    fig, ax = plt.subplots(figsize=(1.6 + 1.4 * len(labels), 4.0))
+    xs = np.arange(len(labels))
+    bottom = np.zeros(len(labels))
+    for p in PARTS:
+        free = np.array([sum(c["parts"][p]["inside"] - c["parts"][p]["pinched"]
+                             for c in res["models"][m]["cases"]) for m in labels], float)
+        pin = np.array([sum(c["parts"][p]["pinched"] for c in res["models"][m]["cases"])
+                        for m in labels], float)
+        b = ax.bar(xs, free, bottom=bottom, label=p)
+        bottom += free
+        ax.bar(xs, pin, bottom=bottom, color=b.patches[0].get_facecolor(), hatch="//",
+               edgecolor="k", linewidth=0.3)
+        bottom += pin
+    ax.set_xticks(xs, [f"{m}\neps_c {res['models'][m]['eps_c']:.3f} %" for m in labels])
+    ax.set_ylabel("garment vertex-frames inside the body")
+    ax.set_title(f"{res['set']} cases: contacts by body part (hatched: pinched)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--models", nargs="+", required=True, help="model files or shipped names")
+    p.add_argument("--labels", nargs="+", default=None)
+    p.add_argument("--cases", default="held_out", choices=("held_out", "validation"))
+    p.add_argument("--frames", type=int, default=60)
+    p.add_argument("--pinch", type=float, default=0.01, help="pinch distance (m), default 1 cm")
+    p.add_argument("--optimum", type=int, default=0, help="worst frames per case to re-solve")
+    p.add_argument("--name", default="dress")
+    p.add_argument("--out", default=str(HERE / "results"))
+    a = p.parse_args(argv)
+    import torch
+
+    from draping.body import AnnyBody
+    from draping.gaps import drape_case, held_out_cases, load_model, validation_cases
+
+    torch.set_num_threads(1)
+    env = environment()
+    labels = a.labels or a.models
+    if len(labels) != len(a.models):
+        raise SystemExit("--labels: one per model")
+    body = AnnyBody.load()
+    parts = face_parts(body)
+    cases = (held_out_cases if a.cases == "held_out" else validation_cases)(a.frames)
+    res = {"set": a.cases, "frames": a.frames, "pinch_m": a.pinch, "models": {}}
+    c0 = time.process_time()
+    for path, label in zip(a.models, labels):
+        m = load_model(path)
+        rows, opt = [], []
+        for c in cases:
+            d = drape_case(m, body, c)
+            r = {"case": f"{c.motion}:{c.seed}:{c.speed:g}", **contacts(d, body, parts, a.pinch)}
+            rows.append(r)
+            worst = np.argsort(r["per_frame"])[::-1][:a.optimum]
+            opt += [{"case": r["case"], **loss_optimum(m, d, body, int(t))} for t in worst
+                    if r["per_frame"][t] > 0]
+            print(f"{label:10s} {r['case']:16s} inside {r['inside_vertex_frames']:5d} "
+                  f"(pinched {r['pinched']}) depth {r['depth_mm_mean']:.2f}/"
+                  f"{r['depth_mm_max']:.2f} mm " + " ".join(
+                      f"{k}:{v['inside']}" for k, v in r["parts"].items() if v["inside"]),
+                  flush=True)
+        n = sum(r["inside_vertex_frames"] for r in rows)
+        tot = sum(len(r["per_frame"]) for r in rows) * int(m.template.shape[0])
+        res["models"][label] = {"model": str(path), "eps_c": 100.0 * n / tot, "cases": rows,
+                                "loss_optimum": opt}
+        for o in opt:
+            print(f"{label:10s} {o['case']:16s} frame {o['frame']}: inside {o['inside_model']}"
+                  f" -> loss minimiser {o['inside_optimum']}", flush=True)
+    res["cpu_seconds"] = time.process_time() - c0
+    res.update(finish(env))
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    stem = f"gaps_contacts_{a.name}_{a.cases}"
+    (out / f"{stem}.json").write_text(json.dumps(res, indent=1))
+    chart(res, out / f"{stem}.png")
+    print(f"wrote {out / stem}.json/.png ({res['cpu_seconds']:.0f} CPU s)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
