@@ -432,12 +432,15 @@ def part_ratio(args, net) -> dict:
         ax.xaxis.set_minor_formatter(plt.NullFormatter())
         ax.set_xlabel("optimiser CPU ms per frame (1 thread, shared machine)")
         ax.set_ylabel("mean e_3D vs converged reference")
-        lines = []
-        for key in ("baseline", "baseline_unpreconditioned", "thesis_lbfgs"):
-            base = rec["res"][res][key]
+        lines, tags = [], {}
+        for key, tag in (("baseline", "strongest"), ("baseline_unpreconditioned",
+                                                     "fastest un-preconditioned"),
+                         ("thesis_lbfgs", "thesis config")):
+            tags.setdefault(rec["res"][res][key], []).append(tag)
+        for base, tag in tags.items():
             sp = [q for q in rec["res"][res]["speedup"].get(base, []) if q["bound"] == "="]
-            lines.append(f"vs {base}: " + ", ".join(f"N{q['iters']} {q['speedup']:.1f}x"
-                                                    for q in sp))
+            lines.append(f"vs {base} ({', '.join(tag)}): " + ", ".join(
+                f"N{q['iters']} {q['speedup']:.1f}x" for q in sp))
         ax.set_title(f"{res}x{res}, speed-up of FNOpt at equal e_3D\n" + "\n".join(lines),
                      fontsize=7)
         ax.grid(alpha=0.3)
