@@ -47,10 +47,18 @@ only, never on the chunk (or tile) it is processed in:
    pooled (median) over the same neighbours: a residual on few degrees of freedom (an
    order-3 fit on 13 points has 3) can be small by chance, and made a point's fit look
    exact (measured on the bunny scan bun000: 47 points chose an order-3 normal on 13-17
-   points, 37-61 deg off the other scan's).
+   points, 37-61 deg off the other scan's). The normal's squared bias is at least its
+   measured drift (:func:`measured_drift`, pooled): the change of its slopes from the
+   narrowest well-determined size of its order, less the variance of that change. Fine
+   real detail breaks the modelled drift (one power of the size, a rate shared by the
+   neighbours): on the bunny scans 75 % of the residual variance of a 101-point quadratic
+   is shared by two independent scans (residual correlation 0.49 between them, 0.57
+   between neighbouring points of one scan, against about 0 for i.i.d. noise), so what
+   the wide fits leave is detail both see, whose bias turns from one point to the next.
 3. choice per point (:func:`choose`): the per-point errors pooled (median) again over the
-   same neighbours; per quantity the (order, size) of least error, the sizes of an order
-   capped by its pooled (geometric median) ICI size.
+   same neighbours, a neighbour that cannot fit a setting counting as an infinite error;
+   per quantity the (order, size) of least error, the sizes of an order capped by its
+   pooled (geometric median) ICI size.
 
 The point is then fitted at the chosen curvature setting by the fused kernel, exactly as a
 fixed ``(k, order)`` call would fit it; where the normal's setting differs, the normal comes
@@ -92,6 +100,13 @@ _BIAS_POWER = {"normal": {1: 2, 2: 2, 3: 4, 4: 4}, "H": {1: 2, 2: 2, 3: 2, 4: 4}
 #: Whether the plane's normal error is modelled by its alias (:func:`plane_alias`; False: by
 #: its residual variance and drift like the other orders, the rule before; for ablations).
 _PLANE_ALIAS = True
+#: Whether the normal's squared bias is at least its measured drift from the narrowest
+#: well-determined size of its order (:func:`measured_drift`; False: the modelled drift
+#: alone, the rule before; for ablations).
+_MEASURED_DRIFT = True
+#: Whether a setting's pooled error counts the neighbours that cannot fit it as infinite
+#: (False: they are left out of the median, the rule before; for ablations).
+_UNDEFINED_INF = True
 #: Whether the variances use the noise variance pooled (median) over the point's neighbours
 #: (False: the point's own, the rule before; for ablations).
 _POOL_NOISE = True
@@ -115,12 +130,19 @@ def auto_orders(settings: Settings) -> tuple[int, ...]:
 
 
 def _ici(val, gvar, rss, dof, ok, oi, m):
-    """ICI over the sizes of order index ``oi``: ``(chosen size index, noise variance)``."""
+    """ICI over the sizes of order index ``oi``: ``(chosen size index, noise variance)``.
+
+    The noise variance is the mean residual variance of the fits taken that have ``_MIN_DOF``
+    degrees of freedom per coefficient, the first well-posed fit's until there is one (no
+    longer averaged in once there is: a residual on one to three degrees of freedom can be
+    near zero by chance or on a degenerate sampling, such as a scanner's rows).
+    """
     Q, _, S = ok.shape
     lo = np.full((Q, 3), -np.inf)
     hi = np.full((Q, 3), np.inf)
     s2sum = np.zeros(Q)
     s2n = np.zeros(Q)
+    weak = np.full(Q, np.nan)  # the first well-posed fit's residual variance
     sig2 = np.zeros(Q)
     alive = np.ones(Q, dtype=bool)
     chosen = np.full(Q, -1)
@@ -129,10 +151,12 @@ def _ici(val, gvar, rss, dof, ok, oi, m):
         d = dof[:, oi, si]
         # residual variances of the fits so far with enough degrees of freedom (the first
         # well-posed fit's until there is one)
-        add = okc & ((d >= _MIN_DOF * m) | ((s2n == 0) & (d > 0)))
+        add = okc & (d >= _MIN_DOF * m)
+        first = okc & np.isnan(weak) & (d > 0)
+        weak = np.where(first, rss[:, oi, si] / np.maximum(d, 1), weak)
         s2sum = np.where(add, s2sum + rss[:, oi, si] / np.maximum(d, 1), s2sum)
         s2n = np.where(add, s2n + 1, s2n)
-        sig2 = np.where(s2n > 0, s2sum / np.maximum(s2n, 1), 0.0)
+        sig2 = np.where(s2n > 0, s2sum / np.maximum(s2n, 1), np.nan_to_num(weak, nan=0.0))
         sd = AUTO_K_GAMMA * np.sqrt(sig2[:, None] * gvar[:, oi, si, :])
         nlo = np.maximum(lo, val[:, oi, si] - sd)
         nhi = np.minimum(hi, val[:, oi, si] + sd)
@@ -255,11 +279,42 @@ def point_statistics(hoods: Neighbourhoods, q, nbr, dist, *, orders, sizes,
         last = np.where(okc, np.arange(S)[None, :], -1).max(1)
         H[:, oi] = np.where(last >= 0, val[np.arange(Q), oi, np.maximum(last, 0), 2], np.nan)
     out = dict(size=size, var=var, B=B, varB=varB, BC=BC, covBC=covBC, u=u, H=H, s2=s2o)
+    if _MEASURED_DRIFT:
+        out["drift"] = measured_drift(val, v3, ok, dof, orders)
     if plane:
         s2c = np.stack([ici[oi][1] for oi in range(1, O)], 1)  # curved orders' noise
         s2c = np.where(s2c > 0, s2c, np.inf).min(1)
         out.update(plane_alias(st["val"], v3, ok, np.where(np.isfinite(s2c), s2c, 0.0),
                                _rank_gap(dist, sizes)))
+    return out
+
+
+def measured_drift(val, v3, ok, dof, orders) -> np.ndarray:
+    """``(Q, O, S)``: squared drift of the normal of each order and size, measured.
+
+    Per order, the slopes at each size are compared with those of the narrowest size of
+    that order whose fit has at least ``_MIN_DOF`` degrees of freedom per coefficient (its
+    reference: the least smoothed well-determined fit): the squared difference of both
+    slopes less its variance ``v_ref - v_s`` (nested fits), an unbiased estimate of the
+    squared change of the bias from the reference to the size (NaN at the sizes below the
+    reference and where a fit is not well posed). No model of how the bias grows with the
+    size: the drift :func:`bias_rate` fits assumes one power of the radius and a bias that
+    neighbours share (its rate is pooled), which fine detail of a real surface breaks (its
+    bias turns with the detail from one point to the next, and saturates with the size).
+    """
+    Q, O, S = ok.shape
+    out = np.full((Q, O, S), np.nan)
+    qi = np.arange(Q)
+    for oi, o in enumerate(orders):
+        good = ok[:, oi] & (dof[:, oi] >= _MIN_DOF * jets.n_coeffs(o))
+        has = good.any(1)
+        r = np.argmax(good, 1)
+        d = val[:, oi, :, :2] - val[qi, oi, r, :2][:, None, :]
+        vd = np.maximum(v3[qi, oi, r, :2][:, None, :] - v3[:, oi, :, :2], 0.0)
+        use = ok[:, oi] & has[:, None] & (np.arange(S)[None, :] >= r[:, None])
+        with np.errstate(invalid="ignore"):
+            out[:, oi] = np.where(use, (d * d - np.where(use[..., None], vd, 0.0)).sum(-1),
+                                  np.nan)
     return out
 
 
@@ -391,6 +446,9 @@ def point_mse(stats: dict, rows: np.ndarray, pool: np.ndarray, sizes: np.ndarray
         alias = _pooled_median(stats["alias"], pool)  # (Q, S)
         tang = np.nan_to_num(_pooled_median(stats["tangential"], pool), nan=0.0)  # (Q,)
         follow = np.nan_to_num(_pooled_median(stats["follow"], pool), nan=1.0)  # (Q, S)
+    meas = None
+    if "drift" in stats:  # pooled like the rest, then clamped: an unbiased b^2 estimate
+        meas = np.maximum(np.nan_to_num(_pooled_median(stats["drift"], pool), nan=0.0), 0.0)
     for oi, o in enumerate(orders):
         t2n = n_rel ** _BIAS_POWER["normal"][o]
         t2h = n_rel ** _BIAS_POWER["H"][o]
@@ -401,6 +459,8 @@ def point_mse(stats: dict, rows: np.ndarray, pool: np.ndarray, sizes: np.ndarray
                              drift)
         elif plane:  # a curved jet: its normal moves with the query's own tangential noise
             drift = drift + tang[:, None]
+        if meas is not None:
+            drift = np.maximum(drift, meas[:, oi])
         mse[:, oi, :, 0] += drift
         # H: b_s = B t_s + C u_s and its variance, where the attenuation term applies
         t, uu = np.sqrt(t2h)[None, :], np.nan_to_num(stats["u"][rows, oi], nan=0.0)
@@ -416,15 +476,19 @@ def choose(stats: dict, table: np.ndarray, pool: np.ndarray, sizes: np.ndarray,
     """Per query, the pooled errors of every setting for the normal and for the curvatures.
 
     ``table (O, S, 2, N)``: :func:`point_mse` of every point (:func:`store_mse`; NaN where not
-    defined), pooled (median) over ``pool
-    (Q, P)`` (the query first; ``-1`` padding ignored); per order the sizes above the pooled
-    (geometric median) ICI size, those the query itself cannot fit and, for the curvatures,
+    defined), pooled (median) over ``pool (Q, P)`` (the query first; ``-1`` padding ignored;
+    a NaN counts as an infinite error, so that a setting most neighbours cannot fit is not
+    judged by the few that can); per order the sizes above the pooled (geometric median) ICI
+    size, those the query itself cannot fit and, for the curvatures,
     order 1 (when a higher order is tried) get ``inf``. Returns
     ``normal`` and ``curvature``, each ``(Q, O * S)`` (order-major; :func:`best_setting`).
     """
     Q = pool.shape[0]
     O, S = table.shape[0], table.shape[1]
-    m = _pooled_median_t(table.reshape(O * S * 2, -1), pool)  # (O * S * 2, Q)
+    flat_table = table.reshape(O * S * 2, -1)
+    if _UNDEFINED_INF:  # a setting a neighbour cannot fit counts as an infinite error there
+        flat_table = np.where(np.isnan(flat_table), np.inf, flat_table)
+    m = _pooled_median_t(flat_table, pool)  # (O * S * 2, Q)
     m = np.moveaxis(m.reshape(O, S, 2, Q), -1, 0)
     m = np.where(np.isnan(m), np.inf, m)
     logs = np.log(sizes.astype(np.float64))
