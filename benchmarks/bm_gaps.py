@@ -604,11 +604,18 @@ def chart_ablations(res: dict, path: Path) -> None:
 
 
 def strip(args, ev_: Evaluator, res: dict, cache: Path, path: Path) -> None:
-    """The last frame of the first T-shirt case: reference, then each method."""
+    """The last frame of the first T-shirt case: reference, then each method.
+
+    Another garment's when the run has no T-shirt case; nothing when it has no case of any
+    garment in the record.
+    """
     from draping import viz
     from draping.gaps import load_model
 
-    g = "tshirt" if "tshirt" in res else next(g for g in res if g in ev.GARMENTS)
+    have = [g for g in res if g in ev.GARMENTS and ev_.garment_cases(g)]
+    if not have:  # e.g. ``--garments dress`` with only the T-shirt's rows in the record
+        return
+    g = "tshirt" if "tshirt" in have else have[0]
     case = ev_.garment_cases(g)[0]
     ref = ev_.reference(case)
     meshes, titles = [], []

@@ -210,6 +210,20 @@ def test_default_size_is_the_recorded_parsimony_pick(bm):
         assert pick["label"] == r["parsimonious"] == default, g
 
 
+def test_strip_skips_garments_without_a_case_in_the_run(bm, tmp_path):
+    """``--sections given charts --garments dress`` on a record that also holds T-shirt rows:
+    the strip picks a garment of this run's cases, and draws nothing when there is none
+    (it used to index the T-shirt's empty case list)."""
+
+    class NoCases:
+        def garment_cases(self, g):
+            return []
+
+    res = {"tshirt": {"models": []}, "dress": {"models": []}}
+    assert bm.strip(None, NoCases(), res, tmp_path, tmp_path / "s.png") is None
+    assert not (tmp_path / "s.png").exists()
+
+
 def test_contacts_body_parts_and_inside_counts():
     """``gaps_contacts``: bones map to their side's limb or the torso; on a garment with two
     vertices pushed into the body (one deep, one on the skin's inner side of a thigh) the
