@@ -130,19 +130,12 @@ def auto_orders(settings: Settings) -> tuple[int, ...]:
 
 
 def _ici(val, gvar, rss, dof, ok, oi, m):
-    """ICI over the sizes of order index ``oi``: ``(chosen size index, noise variance)``.
-
-    The noise variance is the mean residual variance of the fits taken that have ``_MIN_DOF``
-    degrees of freedom per coefficient, the first well-posed fit's until there is one (no
-    longer averaged in once there is: a residual on one to three degrees of freedom can be
-    near zero by chance or on a degenerate sampling, such as a scanner's rows).
-    """
+    """ICI over the sizes of order index ``oi``: ``(chosen size index, noise variance)``."""
     Q, _, S = ok.shape
     lo = np.full((Q, 3), -np.inf)
     hi = np.full((Q, 3), np.inf)
     s2sum = np.zeros(Q)
     s2n = np.zeros(Q)
-    weak = np.full(Q, np.nan)  # the first well-posed fit's residual variance
     sig2 = np.zeros(Q)
     alive = np.ones(Q, dtype=bool)
     chosen = np.full(Q, -1)
@@ -151,12 +144,10 @@ def _ici(val, gvar, rss, dof, ok, oi, m):
         d = dof[:, oi, si]
         # residual variances of the fits so far with enough degrees of freedom (the first
         # well-posed fit's until there is one)
-        add = okc & (d >= _MIN_DOF * m)
-        first = okc & np.isnan(weak) & (d > 0)
-        weak = np.where(first, rss[:, oi, si] / np.maximum(d, 1), weak)
+        add = okc & ((d >= _MIN_DOF * m) | ((s2n == 0) & (d > 0)))
         s2sum = np.where(add, s2sum + rss[:, oi, si] / np.maximum(d, 1), s2sum)
         s2n = np.where(add, s2n + 1, s2n)
-        sig2 = np.where(s2n > 0, s2sum / np.maximum(s2n, 1), np.nan_to_num(weak, nan=0.0))
+        sig2 = np.where(s2n > 0, s2sum / np.maximum(s2n, 1), 0.0)
         sd = AUTO_K_GAMMA * np.sqrt(sig2[:, None] * gvar[:, oi, si, :])
         nlo = np.maximum(lo, val[:, oi, si] - sd)
         nhi = np.minimum(hi, val[:, oi, si] + sd)
@@ -309,10 +300,10 @@ def measured_drift(val, v3, ok, dof, orders) -> np.ndarray:
         good = ok[:, oi] & (dof[:, oi] >= _MIN_DOF * jets.n_coeffs(o))
         has = good.any(1)
         r = np.argmax(good, 1)
-        d = val[:, oi, :, :2] - val[qi, oi, r, :2][:, None, :]
-        vd = np.maximum(v3[qi, oi, r, :2][:, None, :] - v3[:, oi, :, :2], 0.0)
         use = ok[:, oi] & has[:, None] & (np.arange(S)[None, :] >= r[:, None])
-        with np.errstate(invalid="ignore"):
+        with np.errstate(invalid="ignore"):  # inf - inf where a fit is not well posed
+            d = val[:, oi, :, :2] - val[qi, oi, r, :2][:, None, :]
+            vd = np.maximum(v3[qi, oi, r, :2][:, None, :] - v3[:, oi, :, :2], 0.0)
             out[:, oi] = np.where(use, (d * d - np.where(use[..., None], vd, 0.0)).sum(-1),
                                   np.nan)
     return out
