@@ -55,6 +55,9 @@ only, never on the chunk (or tile) it is processed in:
    is shared by two independent scans (residual correlation 0.49 between them, 0.57
    between neighbouring points of one scan, against about 0 for i.i.d. noise), so what
    the wide fits leave is detail both see, whose bias turns from one point to the next.
+   The normal's noise variance is also no less than its order's truncation scaling allows
+   from its first well-determined fit (:func:`_weak_floor`): fits on a few degrees of
+   freedom with a zero residual on the scanner's rows had looked exact.
 3. choice per point (:func:`choose`): the per-point errors pooled (median) again over the
    same neighbours, a neighbour that cannot fit a setting counting as an infinite error;
    per quantity the (order, size) of least error, the sizes of an order capped by its
@@ -104,6 +107,11 @@ _PLANE_ALIAS = True
 #: well-determined size of its order (:func:`measured_drift`; False: the modelled drift
 #: alone, the rule before; for ablations).
 _MEASURED_DRIFT = True
+#: Whether, for the normal's variance, a fit with few degrees of freedom claims no less
+#: residual variance than its order's truncation scaling allows (:func:`_weak_floor`;
+#: False: its own, the rule before). Not for the curvatures: clean data need an order-4
+#: jet on 21 points, whose H the floor would cost (clean torus H 1.39 -> 1.63x the best).
+_WEAK_FLOOR = True
 #: Whether a setting's pooled error counts the neighbours that cannot fit it as infinite
 #: (False: they are left out of the median, the rule before; for ablations).
 _UNDEFINED_INF = True
@@ -129,8 +137,13 @@ def auto_orders(settings: Settings) -> tuple[int, ...]:
     return tuple(orders)
 
 
-def _ici(val, gvar, rss, dof, ok, oi, m):
-    """ICI over the sizes of order index ``oi``: ``(chosen size index, noise variance)``."""
+def _ici(val, gvar, rss, dof, ok, oi, m, floor=None):
+    """ICI over the sizes of order index ``oi``: ``(chosen size index, noise variance)``.
+
+    ``floor (Q, S)`` (optional): the least residual variance a fit of each size may claim
+    before the order has a fit with ``_MIN_DOF`` degrees of freedom per coefficient
+    (:func:`_weak_floor`).
+    """
     Q, _, S = ok.shape
     lo = np.full((Q, 3), -np.inf)
     hi = np.full((Q, 3), np.inf)
@@ -145,7 +158,10 @@ def _ici(val, gvar, rss, dof, ok, oi, m):
         # residual variances of the fits so far with enough degrees of freedom (the first
         # well-posed fit's until there is one)
         add = okc & ((d >= _MIN_DOF * m) | ((s2n == 0) & (d > 0)))
-        s2sum = np.where(add, s2sum + rss[:, oi, si] / np.maximum(d, 1), s2sum)
+        s2 = rss[:, oi, si] / np.maximum(d, 1)
+        if floor is not None:
+            s2 = np.where(d >= _MIN_DOF * m, s2, np.maximum(s2, floor[:, si]))
+        s2sum = np.where(add, s2sum + s2, s2sum)
         s2n = np.where(add, s2n + 1, s2n)
         sig2 = np.where(s2n > 0, s2sum / np.maximum(s2n, 1), 0.0)
         sd = AUTO_K_GAMMA * np.sqrt(sig2[:, None] * gvar[:, oi, si, :])
@@ -157,6 +173,27 @@ def _ici(val, gvar, rss, dof, ok, oi, m):
         chosen = np.where(take, si, chosen)
         alive &= ~(okc & ~take)  # the intervals stopped intersecting: bias dominates
     return chosen, sig2
+
+
+def _weak_floor(rss, dof, ok, oi, order, sizes) -> np.ndarray:
+    """``(Q, S)``: the least residual variance each size of an order may claim.
+
+    From the order's first fit with ``_MIN_DOF`` degrees of freedom per coefficient (0 where
+    it has none): that fit's residual variance ``s2_f`` (``n_f`` points) is noise, or
+    truncation, or both; a narrower fit's on ``n`` points is at least ``s2_f (n /
+    n_f)^(order + 1)`` (a truncation residual of an order-``p`` jet grows like
+    ``r^(p + 1)``, its variance like ``n^(p + 1)``; noise does not fall with the size).
+    Below it, a residual on a few degrees of freedom is too small to be either: chance, or
+    a degenerate sampling (the scanner's rows of the bunny scans, where order-3 fits on 13
+    points had a zero residual).
+    """
+    Q, _, S = ok.shape
+    good = ok[:, oi] & (dof[:, oi] >= _MIN_DOF * jets.n_coeffs(order))
+    f = np.argmax(good, 1)
+    qi = np.arange(Q)
+    s2f = np.where(good.any(1), rss[qi, oi, f] / np.maximum(dof[qi, oi, f], 1), 0.0)
+    ratio = sizes[None, :].astype(np.float64) / sizes[f][:, None]
+    return s2f[:, None] * np.minimum(ratio, 1.0) ** (order + 1)
 
 
 def bias_rate(y, v, ok, t, u=None):
@@ -257,7 +294,12 @@ def point_statistics(hoods: Neighbourhoods, q, nbr, dist, *, orders, sizes,
         okc = ok[:, oi]
         v = s2[:, None, None] * gvar[:, oi]  # (Q, S, 3)
         v3[:, oi] = np.where(okc[..., None], v, np.inf)
-        var[:, oi, :, 0] = np.where(okc, v[..., 0] + v[..., 1], np.inf)
+        s2n = s2
+        if _WEAK_FLOOR and o >= 2:  # the normal's noise: no less than the floor allows
+            s2n = _ici(val, gvar, rss, dof, ok, oi, jets.n_coeffs(o),
+                       _weak_floor(rss, dof, ok, oi, o, sizes))[1]
+        var[:, oi, :, 0] = np.where(okc, s2n[:, None] * (gvar[:, oi, :, 0] + gvar[:, oi, :, 1]),
+                                    np.inf)
         var[:, oi, :, 1] = np.where(okc, v[..., 2], np.inf)
         for j, quantity in ((0, "normal"), (1, "normal"), (2, "H")):
             t = n_rel ** (_BIAS_POWER[quantity][o] / 2.0)

@@ -15,7 +15,7 @@ from polygeo import synthetic as sy
 from polygeo.estimate import differential_quantities
 
 #: The rules added for fine detail (the behaviour before: all False).
-NEW_RULES = ("_MEASURED_DRIFT", "_UNDEFINED_INF")
+NEW_RULES = ("_MEASURED_DRIFT", "_UNDEFINED_INF", "_WEAK_FLOOR")
 
 
 def detailed_patch(n_side=90, lam=12.0, slope=0.06, noise=0.07, radius=40.0, seed=0,
@@ -118,3 +118,14 @@ def test_a_setting_most_neighbours_cannot_fit_is_not_chosen(monkeypatch, undefin
     score = ea.choose(stats, table, pool, sizes, (2,))
     order_i, k = ea.best_setting(score["normal"], sizes)
     assert k[0] == (25 if undefined_inf else 13)
+
+
+def test_weak_floor_follows_the_truncation_scaling():
+    sizes = np.array([13, 17, 25, 33])
+    dof = np.array([7, 11, 19, 27])[None, None, :]  # order 2: 6 coefficients, 18 needed
+    rss = np.array([0.0, 0.0, 38.0, 81.0])[None, None, :]  # first well-determined: s2 = 2
+    ok = np.ones((1, 1, 4), dtype=bool)
+    got = ea._weak_floor(rss, dof, ok, 0, 2, sizes)
+    np.testing.assert_allclose(got[0], 2.0 * np.minimum(sizes / 25.0, 1.0) ** 3)
+    none = ea._weak_floor(rss, np.minimum(dof, 17), ok, 0, 2, sizes)
+    np.testing.assert_array_equal(none, 0.0)
