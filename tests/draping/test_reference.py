@@ -142,7 +142,7 @@ def test_objective_matches_frame_energy():
         friction_weight=torch.from_numpy(ob.friction_weight),
     )
     (gt,) = torch.autograd.grad(et, xt)
-    assert e == pytest.approx(float(et), rel=1e-12)
+    assert e == pytest.approx(float(et.detach()), rel=1e-12)
     np.testing.assert_allclose(g, gt.numpy(), atol=1e-10 * np.abs(g).max())
     assert h.shape == (75, 75)
     # the projected Hessian is definite (mass term); the exact one equals autograd's
