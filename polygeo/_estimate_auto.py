@@ -473,7 +473,8 @@ def point_mse(stats: dict, rows: np.ndarray, pool: np.ndarray, sizes: np.ndarray
         with np.errstate(invalid="ignore", divide="ignore"):
             f = np.where(s2 > 0, s2p / np.where(s2 > 0, s2, 1.0), 1.0)
         f = np.where(np.isfinite(f), f, 1.0)[:, :, None, None]
-        mse = np.where(np.isfinite(mse), mse * f, mse)
+        with np.errstate(invalid="ignore"):  # both branches are evaluated: inf * 0 where
+            mse = np.where(np.isfinite(mse), mse * f, mse)  # mse is inf is not taken
     plane = "alias" in stats
     if plane:
         alias = _pooled_median(stats["alias"], pool)  # (Q, S)
