@@ -173,6 +173,69 @@ def _parity_to_root(pred: np.ndarray, neg: np.ndarray) -> np.ndarray:
     return par
 
 
+def _knn_graph(idx: np.ndarray, nn: np.ndarray, ok: np.ndarray) -> sp.csr_matrix:
+    """Directed k-NN graph ``(N, N)`` of the valid points, weights ``1 - |n_i . n_j|``."""
+    npts = idx.shape[0]
+    rows = np.repeat(np.arange(npts), idx.shape[1])
+    cols = idx.reshape(-1)
+    keep = (cols >= 0) & (cols != rows)
+    rows, cols = rows[keep], cols[keep]
+    keep = ok[rows] & ok[cols]
+    rows, cols = rows[keep], cols[keep]
+    w = 1.0 - np.abs(np.einsum("ij,ij->i", nn[rows], nn[cols])) + 1e-9
+    return sp.coo_matrix((w, (rows, cols)), shape=(npts, npts)).tocsr()
+
+
+def _component_seeds(pn, nn, ok, comp, ncomp):
+    """Seed of each component: ``(seeds, score, direction from the centroid)``.
+
+    Among the component's extreme points along +-x, +-y, +-z, the one whose normal is best
+    aligned with the direction from the component's centroid (score ``|n . r| / |r|``, -1
+    where no valid point was found); that normal is made to point away from the centroid.
+    """
+    cnt = np.bincount(comp, weights=ok.astype(float), minlength=ncomp)
+    cen = np.stack(
+        [np.bincount(comp, weights=np.where(ok, pn[:, a], 0.0), minlength=ncomp)
+         for a in range(3)], 1,
+    ) / np.maximum(cnt, 1)[:, None]
+    best_score = np.full(ncomp, -1.0)
+    seeds = np.zeros(ncomp, dtype=np.int64)
+    for axis in range(3):
+        for sgn in (1.0, -1.0):
+            cand = _group_argmax(np.where(ok, sgn * pn[:, axis], -np.inf), comp, ncomp)
+            radial = pn[cand] - cen[comp[cand]]
+            rn = np.linalg.norm(radial, axis=1)
+            dots = np.abs(np.einsum("ij,ij->i", nn[cand], radial))
+            score = dots / np.where(rn > 0, rn, 1)
+            better = score > best_score[comp[cand]] + 1e-12
+            cc = comp[cand][better]
+            best_score[cc] = score[better]
+            seeds[cc] = cand[better]
+    return seeds, best_score, pn[seeds] - cen[comp[seeds]]
+
+
+def _tree_parity(tree: sp.csr_matrix, nn: np.ndarray, seeds: np.ndarray) -> np.ndarray:
+    """Whether each normal disagrees an odd number of times with its ancestors in ``tree``.
+
+    One breadth-first pass from a virtual root linked to every seed; ``False`` for points
+    the pass does not reach.
+    """
+    npts = nn.shape[0]
+    root = npts
+    link = sp.coo_matrix(
+        (np.ones(seeds.size), (np.full(seeds.size, root), seeds)),
+        shape=(npts + 1, npts + 1),
+    )
+    big = sp.bmat([[tree, None], [None, sp.csr_matrix((1, 1))]]).tocsr() + link.tocsr()
+    _, pr = breadth_first_order(big, root, directed=False, return_predecessors=True)
+    pred = pr[:npts].astype(np.int64)
+    pred[(pred == root) | (pred < 0)] = -1
+    has = pred >= 0
+    neg = np.zeros(npts, dtype=bool)
+    neg[has] = np.einsum("ij,ij->i", nn[has], nn[pred[has]]) < 0
+    return _parity_to_root(pred, neg)
+
+
 def propagate_orientation(
     points: Any,
     normals: Any,
@@ -236,57 +299,14 @@ def propagate_orientation(
     sign = np.ones(npts)
     comp_out = np.full(npts, -1, dtype=np.int64)
     if npts and idx is not None and idx.shape[1] > 0:
-        rows = np.repeat(np.arange(npts), idx.shape[1])
-        cols = idx.reshape(-1)
-        keep = (cols >= 0) & (cols != rows)
-        rows, cols = rows[keep], cols[keep]
-        keep = ok[rows] & ok[cols]
-        rows, cols = rows[keep], cols[keep]
-        w = 1.0 - np.abs(np.einsum("ij,ij->i", nn[rows], nn[cols])) + 1e-9
-        g = sp.coo_matrix((w, (rows, cols)), shape=(npts, npts)).tocsr()
+        g = _knn_graph(idx, nn, ok)
         ncomp, comp = connected_components(g, directed=False)
         tree = minimum_spanning_tree(g)  # treats the directed k-NN edges as undirected
         tree = tree.maximum(tree.T)
-        # seed of each component: among its extreme points along +-x, +-y, +-z, the one whose
-        # normal is best aligned with the direction from the component's centroid; that
-        # normal is made to point away from the centroid (outward on a closed surface)
-        cnt = np.bincount(comp, weights=ok.astype(float), minlength=ncomp)
-        cen = np.stack(
-            [np.bincount(comp, weights=np.where(ok, pn[:, a], 0.0), minlength=ncomp)
-             for a in range(3)], 1,
-        ) / np.maximum(cnt, 1)[:, None]
-        best_score = np.full(ncomp, -1.0)
-        seeds = np.zeros(ncomp, dtype=np.int64)
-        for axis in range(3):
-            for sgn in (1.0, -1.0):
-                cand = _group_argmax(np.where(ok, sgn * pn[:, axis], -np.inf), comp, ncomp)
-                radial = pn[cand] - cen[comp[cand]]
-                rn = np.linalg.norm(radial, axis=1)
-                dots = np.abs(np.einsum("ij,ij->i", nn[cand], radial))
-                score = dots / np.where(rn > 0, rn, 1)
-                better = score > best_score[comp[cand]] + 1e-12
-                cc = comp[cand][better]
-                best_score[cc] = score[better]
-                seeds[cc] = cand[better]
-        seed_dir = pn[seeds] - cen[comp[seeds]]
-        # one breadth-first pass from a virtual root linked to every seed
-        seeds_ok = seeds[(best_score >= 0) & ok[seeds]]
-        root = npts
-        link = sp.coo_matrix(
-            (np.ones(seeds_ok.size), (np.full(seeds_ok.size, root), seeds_ok)),
-            shape=(npts + 1, npts + 1),
-        )
-        big = sp.bmat([[tree, None], [None, sp.csr_matrix((1, 1))]]).tocsr() + link.tocsr()
-        _, pr = breadth_first_order(big, root, directed=False, return_predecessors=True)
-        pred = pr[:npts].astype(np.int64)
-        pred[(pred == root) | (pred < 0)] = -1
-        has = pred >= 0
-        neg = np.zeros(npts, dtype=bool)
-        neg[has] = np.einsum("ij,ij->i", nn[has], nn[pred[has]]) < 0
-        parity = _parity_to_root(pred, neg)
+        seeds, best_score, seed_dir = _component_seeds(pn, nn, ok, comp, ncomp)
+        parity = _tree_parity(tree, nn, seeds[(best_score >= 0) & ok[seeds]])
         seed_flip = np.einsum("ij,ij->i", nn[seeds], seed_dir) < 0
-        flip = parity ^ seed_flip[comp]
-        flip &= ok
+        flip = (parity ^ seed_flip[comp]) & ok
         sign = np.where(flip, -1.0, 1.0)
         comp_out = np.where(ok, comp, -1).astype(np.int64)
     s_t = torch.from_numpy(sign).to(n.dtype)
