@@ -387,6 +387,119 @@ def _edge_fn_grad(g, ax, ay, bx, by, qx, qy, gv, ia, ib):
     gv[ib, 1] += g * (ax - qx)
 
 
+@njit(cache=True, inline="always")
+def _tile_cache(b, i0, i1, j0, j1, rgb_mode, P_img, m_img, Z_img, rgb_img, g_alpha, g_rgb,
+                tgaP, tgdot, tinvZ, tm, tany):
+    """Load a tile's per-pixel upstream terms; whether any pixel has a non-zero gradient."""
+    C = rgb_img.shape[3]
+    live = False
+    for i in range(i0, i1):
+        for j in range(j0, j1):
+            li = i - i0
+            lj = j - j0
+            gaP = g_alpha[b, i, j] * P_img[b, i, j]
+            tgaP[li, lj] = gaP
+            any_rgb = False
+            gdotI = 0.0
+            if rgb_mode:
+                tinvZ[li, lj] = 1.0 / Z_img[b, i, j]
+                tm[li, lj] = m_img[b, i, j]
+                for c in range(C):
+                    gc = g_rgb[b, i, j, c]
+                    if gc != 0.0:
+                        any_rgb = True
+                    gdotI += gc * rgb_img[b, i, j, c]
+            tgdot[li, lj] = gdotI
+            tany[li, lj] = any_rgb
+            if gaP != 0.0 or any_rgb:
+                live = True
+    return live
+
+
+@njit(cache=True, inline="always")
+def _vertex_colour_grad(attr, ba, f, p0, p1, p2, col, gcol, gat, need_attr):
+    """Per-vertex colours: fill ``col``, scatter into ``gat``; return d/d(p0, p1, p2)."""
+    gp0 = 0.0
+    gp1 = 0.0
+    gp2 = 0.0
+    for c in range(col.shape[0]):
+        a0 = attr[ba, f, 0, c]
+        a1 = attr[ba, f, 1, c]
+        a2 = attr[ba, f, 2, c]
+        col[c] = p0 * a0 + p1 * a1 + p2 * a2
+        gp0 += gcol[c] * a0
+        gp1 += gcol[c] * a1
+        gp2 += gcol[c] * a2
+        if need_attr:
+            gat[ba, f, 0, c] += gcol[c] * p0
+            gat[ba, f, 1, c] += gcol[c] * p1
+            gat[ba, f, 2, c] += gcol[c] * p2
+    return gp0, gp1, gp2
+
+
+@njit(cache=True, inline="always")
+def _uv_colour_grad(uvs, bu, f, p0, p1, p2, tex, col, gcol, gtx, guv, need_tex, need_uv):
+    """Texture colours: fill ``col``, scatter into ``gtx``/``guv``; return d/d(p0, p1, p2)."""
+    ua0, va0 = uvs[bu, f, 0, 0], uvs[bu, f, 0, 1]
+    ua1, va1 = uvs[bu, f, 1, 0], uvs[bu, f, 1, 1]
+    ua2, va2 = uvs[bu, f, 2, 0], uvs[bu, f, 2, 1]
+    uu = p0 * ua0 + p1 * ua1 + p2 * ua2
+    vv = p0 * va0 + p1 * va1 + p2 * va2
+    gu, gvv = _tex_sample_grad(tex, uu, vv, col, gcol, gtx, need_tex)
+    if need_uv:
+        guv[bu, f, 0, 0] += gu * p0
+        guv[bu, f, 0, 1] += gvv * p0
+        guv[bu, f, 1, 0] += gu * p1
+        guv[bu, f, 1, 1] += gvv * p1
+        guv[bu, f, 2, 0] += gu * p2
+        guv[bu, f, 2, 1] += gvv * p2
+    return gu * ua0 + gvv * va0, gu * ua1 + gvv * va1, gu * ua2 + gvv * va2
+
+
+@njit(cache=True, inline="always")
+def _interp_grad(d, qx, qy, gp0, gp1, gp2, gzp, p0, p1, p2, zp, u0, u1, u2, c0, c1, c2, s,
+                 w0, w1, w2, gv):
+    """Chain d/d(perspective weights p_i, depth zp) back to the face's x, y, z into ``gv``."""
+    iz0 = d[_IZ0]
+    iz1 = d[_IZ0 + 1]
+    iz2 = d[_IZ0 + 2]
+    inva = d[_INVA]
+    # p_i = u_i / U, zp = 1 / U
+    sp = gp0 * p0 + gp1 * p1 + gp2 * p2
+    gu0 = (gp0 - sp) * zp - gzp * zp * zp
+    gu1 = (gp1 - sp) * zp - gzp * zp * zp
+    gu2 = (gp2 - sp) * zp - gzp * zp * zp
+    # u_i = c_i / z_i
+    gv[0, 2] -= gu0 * u0 * iz0
+    gv[1, 2] -= gu1 * u1 * iz1
+    gv[2, 2] -= gu2 * u2 * iz2
+    gc0 = gu0 * iz0
+    gc1 = gu1 * iz1
+    gc2 = gu2 * iz2
+    # c_i = clamp(w_i) / s
+    sc = gc0 * c0 + gc1 * c1 + gc2 * c2
+    gw0 = (gc0 - sc) / s if 0.0 <= w0 <= 1.0 else 0.0
+    gw1 = (gc1 - sc) / s if 0.0 <= w1 <= 1.0 else 0.0
+    gw2 = (gc2 - sc) / s if 0.0 <= w2 <= 1.0 else 0.0
+    # w_i = E_i / A, A = E0 + E1 + E2
+    gA = -(gw0 * w0 + gw1 * w1 + gw2 * w2) * inva
+    x0, y0, x1, y1, x2, y2 = d[0], d[1], d[2], d[3], d[4], d[5]
+    _edge_fn_grad(gw0 * inva + gA, x1, y1, x2, y2, qx, qy, gv, 1, 2)
+    _edge_fn_grad(gw1 * inva + gA, x2, y2, x0, y0, qx, qy, gv, 2, 0)
+    _edge_fn_grad(gw2 * inva + gA, x0, y0, x1, y1, qx, qy, gv, 0, 1)
+
+
+@njit(cache=True, inline="always")
+def _distance_grad(gd2, kmin, tmin, rx, ry, gv):
+    """Chain d/d(squared distance to the nearest edge kmin at parameter tmin) into ``gv``."""
+    ka = kmin
+    kb = (kmin + 1) % 3
+    gv[ka, 0] -= gd2 * 2.0 * (1.0 - tmin) * rx
+    gv[ka, 1] -= gd2 * 2.0 * (1.0 - tmin) * ry
+    gv[kb, 0] -= gd2 * 2.0 * tmin * rx
+    gv[kb, 1] -= gd2 * 2.0 * tmin * ry
+
+
 @njit(cache=True, parallel=True)
 def soft_backward(
     fd, bin_off, bin_f, H, W, ts, margin, cutoff, sigma, inv_gamma, znear, zfar,
@@ -439,28 +552,8 @@ def soft_backward(
             j1 = min(W, j0 + ts)
             ba = b if Ba > 1 else 0
             bu = b if Bu > 1 else 0
-            live = False
-            for i in range(i0, i1):
-                for j in range(j0, j1):
-                    li = i - i0
-                    lj = j - j0
-                    gaP = g_alpha[b, i, j] * P_img[b, i, j]
-                    tgaP[li, lj] = gaP
-                    any_rgb = False
-                    gdotI = 0.0
-                    if rgb_mode:
-                        tinvZ[li, lj] = 1.0 / Z_img[b, i, j]
-                        tm[li, lj] = m_img[b, i, j]
-                        for c in range(C):
-                            gc = g_rgb[b, i, j, c]
-                            if gc != 0.0:
-                                any_rgb = True
-                            gdotI += gc * rgb_img[b, i, j, c]
-                    tgdot[li, lj] = gdotI
-                    tany[li, lj] = any_rgb
-                    if gaP != 0.0 or any_rgb:
-                        live = True
-            if not live:
+            if not _tile_cache(b, i0, i1, j0, j1, rgb_mode, P_img, m_img, Z_img, rgb_img,
+                               g_alpha, g_rgb, tgaP, tgdot, tinvZ, tm, tany):
                 continue
             for k in range(s0, s1):
                 f = bin_f[k]
@@ -473,8 +566,6 @@ def soft_backward(
                     gv[r, 0] = 0.0
                     gv[r, 1] = 0.0
                     gv[r, 2] = 0.0
-                x0, y0, x1, y1, x2, y2 = d[0], d[1], d[2], d[3], d[4], d[5]
-                inva = d[_INVA]
                 iz0 = d[_IZ0]
                 iz1 = d[_IZ0 + 1]
                 iz2 = d[_IZ0 + 2]
@@ -510,78 +601,23 @@ def soft_backward(
                             for c in range(C):
                                 gcol[c] = g_rgb[b, i, j, c] * a * invZ
                             if mode == MODE_VERTEX:
-                                gp0 = 0.0
-                                gp1 = 0.0
-                                gp2 = 0.0
-                                for c in range(C):
-                                    a0 = attr[ba, f, 0, c]
-                                    a1 = attr[ba, f, 1, c]
-                                    a2 = attr[ba, f, 2, c]
-                                    col[c] = p0 * a0 + p1 * a1 + p2 * a2
-                                    gp0 += gcol[c] * a0
-                                    gp1 += gcol[c] * a1
-                                    gp2 += gcol[c] * a2
-                                    if need_attr:
-                                        gat[ba, f, 0, c] += gcol[c] * p0
-                                        gat[ba, f, 1, c] += gcol[c] * p1
-                                        gat[ba, f, 2, c] += gcol[c] * p2
+                                gp0, gp1, gp2 = _vertex_colour_grad(attr, ba, f, p0, p1, p2, col,
+                                                                    gcol, gat, need_attr)
                             else:
-                                ua0, va0 = uvs[bu, f, 0, 0], uvs[bu, f, 0, 1]
-                                ua1, va1 = uvs[bu, f, 1, 0], uvs[bu, f, 1, 1]
-                                ua2, va2 = uvs[bu, f, 2, 0], uvs[bu, f, 2, 1]
-                                uu = p0 * ua0 + p1 * ua1 + p2 * ua2
-                                vv = p0 * va0 + p1 * va1 + p2 * va2
-                                gu, gvv = _tex_sample_grad(tex, uu, vv, col, gcol, gtx, need_tex)
-                                gp0 = gu * ua0 + gvv * va0
-                                gp1 = gu * ua1 + gvv * va1
-                                gp2 = gu * ua2 + gvv * va2
-                                if need_uv:
-                                    guv[bu, f, 0, 0] += gu * p0
-                                    guv[bu, f, 0, 1] += gvv * p0
-                                    guv[bu, f, 1, 0] += gu * p1
-                                    guv[bu, f, 1, 1] += gvv * p1
-                                    guv[bu, f, 2, 0] += gu * p2
-                                    guv[bu, f, 2, 1] += gvv * p2
+                                gp0, gp1, gp2 = _uv_colour_grad(uvs, bu, f, p0, p1, p2, tex, col,
+                                                                gcol, gtx, guv, need_tex, need_uv)
                             gdc = 0.0
                             for c in range(C):
                                 gdc += g_rgb[b, i, j, c] * col[c]
                             ga = (gdc - tgdot[li, lj]) * invZ
                             gx += ga * ez * D * omD
                             gzp = -ga * a * inv_gamma * inv_range
-                            # p_i = u_i / U, zp = 1 / U
-                            sp = gp0 * p0 + gp1 * p1 + gp2 * p2
-                            gu0 = (gp0 - sp) * zp - gzp * zp * zp
-                            gu1 = (gp1 - sp) * zp - gzp * zp * zp
-                            gu2 = (gp2 - sp) * zp - gzp * zp * zp
-                            # u_i = c_i / z_i
-                            gv[0, 2] -= gu0 * u0 * iz0
-                            gv[1, 2] -= gu1 * u1 * iz1
-                            gv[2, 2] -= gu2 * u2 * iz2
-                            gc0 = gu0 * iz0
-                            gc1 = gu1 * iz1
-                            gc2 = gu2 * iz2
-                            # c_i = clamp(w_i) / s
-                            sc = gc0 * c0 + gc1 * c1 + gc2 * c2
-                            gw0 = (gc0 - sc) / s if 0.0 <= w0 <= 1.0 else 0.0
-                            gw1 = (gc1 - sc) / s if 0.0 <= w1 <= 1.0 else 0.0
-                            gw2 = (gc2 - sc) / s if 0.0 <= w2 <= 1.0 else 0.0
-                            # w_i = E_i / A, A = E0 + E1 + E2
-                            gA = -(gw0 * w0 + gw1 * w1 + gw2 * w2) * inva
-                            ge0 = gw0 * inva + gA
-                            ge1 = gw1 * inva + gA
-                            ge2 = gw2 * inva + gA
-                            _edge_fn_grad(ge0, x1, y1, x2, y2, qx, qy, gv, 1, 2)
-                            _edge_fn_grad(ge1, x2, y2, x0, y0, qx, qy, gv, 2, 0)
-                            _edge_fn_grad(ge2, x0, y0, x1, y1, qx, qy, gv, 0, 1)
+                            _interp_grad(d, qx, qy, gp0, gp1, gp2, gzp, p0, p1, p2, zp, u0, u1,
+                                         u2, c0, c1, c2, s, w0, w1, w2, gv)
                         # silhouette / coverage: x = +-d2 / sigma
                         gd2 = gx * inv_sigma if inside else -gx * inv_sigma
                         if gd2 != 0.0:
-                            ka = kmin
-                            kb = (kmin + 1) % 3
-                            gv[ka, 0] -= gd2 * 2.0 * (1.0 - tmin) * rx
-                            gv[ka, 1] -= gd2 * 2.0 * (1.0 - tmin) * ry
-                            gv[kb, 0] -= gd2 * 2.0 * tmin * rx
-                            gv[kb, 1] -= gd2 * 2.0 * tmin * ry
+                            _distance_grad(gd2, kmin, tmin, rx, ry, gv)
                 for r in range(3):
                     gfv[b, f, r, 0] += gv[r, 0]
                     gfv[b, f, r, 1] += gv[r, 1]
