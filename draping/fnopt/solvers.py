@@ -15,6 +15,7 @@ import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 
 from . import cloth
@@ -313,28 +314,40 @@ def laplace_preconditioner(p: StepProblem, k_eff: float = 1.0):
     classical optimisers and the FNO use it through :func:`solve_pgd` and
     :func:`draping.fnopt.model.fno_update`.
     """
-    import numpy as np
-    from scipy.fft import dctn, idctn
+    den = _dct_metric(p, k_eff * p.material["stretch"].double().numpy())
 
+    def apply(g: torch.Tensor) -> torch.Tensor:
+        z = _dct_solve(g.detach().double().numpy(), den[..., None])
+        return torch.from_numpy(z).to(g.dtype)
+
+    return apply
+
+
+def _dct_metric(p: StepProblem, ks) -> np.ndarray:
+    """``(B, H, W)``: ``m dt^2 + dt^4 (ks L + 1e-3 k_b h^2 L^2)`` on the DCT-II modes.
+
+    ``L`` the Neumann grid Laplacian's eigenvalues (1/m^2), ``ks (B,)`` the stiffness charged
+    to the Laplacian term (N/m; 0: inertia and bending only), per sheet.
+    """
     _, h, w, _ = p.x_prev.shape
     hx = p.hx.double().numpy()[:, None, None]
     hy = p.hy.double().numpy()[:, None, None]
     rho = p.material["density"].double().numpy()[:, None, None]
-    ks = k_eff * p.material["stretch"].double().numpy()[:, None, None]
+    ks = np.broadcast_to(np.asarray(ks, dtype=np.float64), hx.shape[:1])[:, None, None]
     kb = 1e-3 * p.material["bend"].double().numpy()[:, None, None]
     lam_r = (2 - 2 * np.cos(np.pi * np.arange(h) / h))[None, :, None]
     lam_c = (2 - 2 * np.cos(np.pi * np.arange(w) / w))[None, None, :]
     dt2 = p.dt * p.dt
     lap = lam_r / (hy * hy) + lam_c / (hx * hx)          # 1/m^2
-    den = rho * hx * hy * dt2 + dt2 * dt2 * hx * hy * (ks * lap + kb * lap * lap)
+    return rho * hx * hy * dt2 + dt2 * dt2 * hx * hy * (ks * lap + kb * lap * lap)
 
-    def apply(g: torch.Tensor) -> torch.Tensor:
-        gn = g.detach().double().numpy()
-        z = idctn(dctn(gn, type=2, axes=(1, 2), norm="ortho") / den[..., None], type=2,
-                  axes=(1, 2), norm="ortho")
-        return torch.from_numpy(z).to(g.dtype)
 
-    return apply
+def _dct_solve(z: np.ndarray, den: np.ndarray) -> np.ndarray:
+    """``idct(dct(z) / den)`` over the grid axes 1, 2 (orthonormal DCT-II)."""
+    from scipy.fft import dctn, idctn
+
+    return idctn(dctn(z, type=2, axes=(1, 2), norm="ortho") / den, type=2, axes=(1, 2),
+                 norm="ortho")
 
 
 def normal_preconditioner(p: StepProblem):
@@ -352,30 +365,16 @@ def normal_preconditioner(p: StepProblem):
     8 x 8 lowest DCT modes, < 6 % a rotation about the handles' axis). Added as one more
     direction of the subspace step, the step's own quadratic model weighs it.
     """
-    import numpy as np
-    from scipy.fft import dctn, idctn
-
-    _, h, w, _ = p.x_prev.shape
     y = (p.x_prev + p.dt * p.v_prev).detach().double()
     xu = torch.cat([y[:, :, 1:2] - y[:, :, :1], y[:, :, 2:] - y[:, :, :-2],
                     y[:, :, -1:] - y[:, :, -2:-1]], 2)
     xv = torch.cat([y[:, 1:2] - y[:, :1], y[:, 2:] - y[:, :-2], y[:, -1:] - y[:, -2:-1]], 1)
     n = torch.cross(xu, xv, dim=-1)
     n = n / n.norm(dim=-1, keepdim=True).clamp(min=1e-300)
-    hx = p.hx.double().numpy()[:, None, None]
-    hy = p.hy.double().numpy()[:, None, None]
-    rho = p.material["density"].double().numpy()[:, None, None]
-    kb = 1e-3 * p.material["bend"].double().numpy()[:, None, None]
-    lam_r = (2 - 2 * np.cos(np.pi * np.arange(h) / h))[None, :, None]
-    lam_c = (2 - 2 * np.cos(np.pi * np.arange(w) / w))[None, None, :]
-    dt2 = p.dt * p.dt
-    lap = lam_r / (hy * hy) + lam_c / (hx * hx)          # 1/m^2
-    den = rho * hx * hy * dt2 + dt2 * dt2 * hx * hy * kb * lap * lap
+    den = _dct_metric(p, 0.0)
 
     def apply(g: torch.Tensor) -> torch.Tensor:
-        gn = (g.detach().double() * n).sum(-1).numpy()
-        z = idctn(dctn(gn, type=2, axes=(1, 2), norm="ortho") / den, type=2, axes=(1, 2),
-                  norm="ortho")
+        z = _dct_solve((g.detach().double() * n).sum(-1).numpy(), den)
         return (n * torch.from_numpy(z)[..., None]).to(g.dtype)
 
     return apply
