@@ -144,13 +144,24 @@ class FNO(nn.Module):
             self.proj2.weight.mul_(0.01)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """Map features ``(B, N_INPUTS, H, W)`` to updates ``(B, 3, H, W)``."""
+        """Map features ``(B, N_INPUTS, H, W)`` to updates ``(B, 3, H, W)``.
+
+        Without gradients (inference) the sum and the GELUs work in place: the same values bit
+        for bit, but no fresh ``(B, width, H, W)`` buffers, whose first touch (page faults of
+        freshly mapped memory) had cost 40 % / 45 % of the forward at 64x64 / 100x100.
+        """
+        inplace = not torch.is_grad_enabled()
         y = self.lift(x)
         for k, (sp, pw) in enumerate(zip(self.spectral, self.pointwise)):
-            y = sp(y) + pw(y)
+            y = sp(y).add_(pw(y)) if inplace else sp(y) + pw(y)
             if k < len(self.spectral) - 1:
-                y = nn.functional.gelu(y)
-        return self.proj2(nn.functional.gelu(self.proj1(y)))
+                y = _gelu(y, inplace)
+        return self.proj2(_gelu(self.proj1(y), inplace))
+
+
+def _gelu(y: torch.Tensor, inplace: bool) -> torch.Tensor:
+    """The exact (erf) GELU, in place on ``y`` when ``inplace`` (no autograd)."""
+    return torch.ops.aten.gelu_(y) if inplace else nn.functional.gelu(y)
 
 
 def stiffness_numbers(p: StepProblem) -> torch.Tensor:

@@ -57,6 +57,13 @@ class StepProblem:
         Lumped masses ``(B, H, W)``, kg.
     extra : callable, optional
         ``x -> (B,)`` extra energy (J), e.g. repulsion.
+    batched_hvp : bool
+        :meth:`hessian_products` in one batched pass (default) or one product at a time.
+    analytic_hvp : bool
+        :meth:`grad_hvp`'s products in closed form (:func:`cloth.loss_hvp`; default, used when
+        there is no ``extra`` energy and :meth:`loss` is ``L_cloth``'s, not a subclass's)
+        instead of autograd's double-backward pass (equal up to rounding; training keeps the
+        latter, so that it reproduces the shipped weights bit for bit).
     """
 
     x_prev: torch.Tensor
@@ -71,6 +78,7 @@ class StepProblem:
     extra: Callable | None = None
     evals: int = field(default=0)
     batched_hvp: bool = True
+    analytic_hvp: bool = True
 
     def compose(self, a: torch.Tensor) -> torch.Tensor:
         """Accelerations with the handles' ones in place."""
@@ -98,8 +106,12 @@ class StepProblem:
     def grad_hvp(self, a: torch.Tensor):
         """``(L, g, hvp)`` at ``a``: loss ``(B,)``, gradient and ``d -> H d``.
 
-        ``H d``: the Hessian of ``L_cloth`` times a direction (a double-backward pass per call).
+        ``H d``: the Hessian of ``L_cloth`` times a direction (a double-backward pass per call,
+        or in closed form with ``analytic_hvp``); ``hvp.many(ds)``: ``(k, B, H, W, 3)``, the
+        products with ``k`` directions in one batched pass.
         """
+        if self.analytic_hvp and self.extra is None and type(self).loss is StepProblem.loss:
+            return self._grad_hvp_analytic(a)         # L_cloth itself: its closed form
         self.evals += 1
         with torch.enable_grad():
             a = a.detach().requires_grad_(True)
@@ -122,6 +134,23 @@ class StepProblem:
 
         hvp.many = many
         return val.detach(), g.detach() * free, hvp
+
+    def _grad_hvp_analytic(self, a: torch.Tensor):
+        """:meth:`grad_hvp` with the products of :func:`cloth.loss_hvp` (no kept graph)."""
+        val, g = self.loss_grad(a)
+        ac = self.compose(a.detach())
+        free = self.free
+
+        def many(ds: list) -> torch.Tensor:
+            d = torch.stack(ds) if isinstance(ds, (list, tuple)) else ds
+            return cloth.loss_hvp(d * free, ac, self.x_prev, self.v_prev, self.hx, self.hy,
+                                  self.material, self.dt, self.mass) * free
+
+        def hvp(d: torch.Tensor, create_graph: bool = False) -> torch.Tensor:
+            return many(d)          # linear in d: differentiable in d either way
+
+        hvp.many = many
+        return val, g, hvp
 
     def exact_step(self, g: torch.Tensor, d: torch.Tensor, hvp) -> torch.Tensor:
         """Minimiser ``(B, 1, 1, 1)`` of the quadratic model of ``L(a + t d)`` (``t >= 0``).
@@ -490,7 +519,8 @@ def solve_lbfgs(p: StepProblem, iters: int, history: int = 5, step: float = 1.0,
 def _as_float64(p: StepProblem) -> StepProblem:
     return StepProblem(p.x_prev.double(), p.v_prev.double(), p.hx.double(), p.hy.double(),
                        {k: v.double() for k, v in p.material.items()}, p.dt, p.free.double(),
-                       p.a_fixed.double(), p.mass.double(), p.extra)
+                       p.a_fixed.double(), p.mass.double(), p.extra,
+                       batched_hvp=p.batched_hvp, analytic_hvp=p.analytic_hvp)
 
 
 def solve_lbfgs_wolfe(p: StepProblem, iters: int, history: int = 10, a0=None,

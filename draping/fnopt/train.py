@@ -212,7 +212,9 @@ class Pool:
         mass = cloth.vertex_mass(r, r, h, h, mat["density"], dtype)
         free = (1.0 - hm)[..., None]
         a_fixed = ((target - x) / DT - v) / DT * hm[..., None]
-        return StepProblem(x, v, h, h, mat, DT, free, a_fixed, mass), target
+        # autograd's products: the shipped weights' own arithmetic, bit for bit
+        return StepProblem(x, v, h, h, mat, DT, free, a_fixed, mass,
+                           analytic_hvp=False), target
 
 
 def _lr(s: TrainSettings, step: int) -> float:
