@@ -332,10 +332,11 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    torch.manual_seed(s.seed)
     gen = torch.Generator().manual_seed(s.seed)
     cfg = FNOConfig(s.width, s.modes, s.layers, s.projection, s.normal, s.normal_split)
-    model = FNO(cfg)
+    with torch.random.fork_rng(devices=[]):     # seeded initial weights; the caller's global
+        torch.manual_seed(s.seed)               # RNG state is restored (nothing else draws
+        model = FNO(cfg)                        # from it: the pool has its own generator)
     opt = torch.optim.Adam(model.parameters(), lr=s.lr)
     fp = runs.fingerprint(asdict(s))
     ck = runs.resume_state(out, fp)
@@ -353,7 +354,6 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
         for k, v in ck.tensors["pool"].items():
             setattr(pool, k, v if k != "mat" else dict(v))
         gen.set_state(ck.tensors["gen"])
-        torch.set_rng_state(ck.tensors["torch_rng"])
         step, history, elapsed = ck.meta["step"], ck.meta["history"], ck.meta["elapsed"]
         cpu_elapsed = ck.meta.get("cpu_elapsed", 0.0)
         log(f"resumed at step {step} ({elapsed / 60:.1f} min so far)")
@@ -373,7 +373,7 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
         runs.save_checkpoint(out / runs.CHECKPOINT_NAME, {
             "model": model.state_dict(), "opt": opt.state_dict(),
             "pool": {k: getattr(pool, k) for k in pool_keys},
-            "gen": gen.get_state(), "torch_rng": torch.get_rng_state()},
+            "gen": gen.get_state()},
             {"fingerprint": fp, "step": step, "history": history,
              "elapsed": time.perf_counter() - t0, "cpu_elapsed": time.process_time() - c0,
              "settings": asdict(s)})
