@@ -57,7 +57,11 @@ only, never on the chunk (or tile) it is processed in:
    the wide fits leave is detail both see, whose bias turns from one point to the next.
    The normal's noise variance is also no less than its order's truncation scaling allows
    from its first well-determined fit (:func:`_weak_floor`): fits on a few degrees of
-   freedom with a zero residual on the scanner's rows had looked exact.
+   freedom with a zero residual on the scanner's rows had looked exact. And it comes from
+   the fits up to that first well-determined one (:func:`_normal_noise`), not from every
+   size the ICI accepts: a wider fit's residual also holds the detail it smooths away, which
+   overstated the noise, made the narrow fits' normals look noisier than they are and
+   hid the wide fits' measured drift under the variance subtracted from it.
 3. choice per point (:func:`choose`): the per-point errors pooled (median) again over the
    same neighbours, a neighbour that cannot fit a setting counting as an infinite error;
    per quantity the (order, size) of least error, the sizes of an order capped by its
@@ -118,6 +122,11 @@ _UNDEFINED_INF = True
 #: Whether the variances use the noise variance pooled (median) over the point's neighbours
 #: (False: the point's own, the rule before; for ablations).
 _POOL_NOISE = True
+#: Whether the normal's noise variance (curved orders) is the residual variance of the fits up
+#: to the narrowest with ``_MIN_DOF`` degrees of freedom per coefficient (:func:`_normal_noise`;
+#: False: the mean over all sizes the ICI accepts, the rule before; for ablations). It sets
+#: the slopes' variances and the variance subtracted from their measured drift.
+_NOISE_NARROWEST = True
 
 
 def candidate_sizes(hoods: Neighbourhoods, settings: Settings) -> np.ndarray:
@@ -137,7 +146,7 @@ def auto_orders(settings: Settings) -> tuple[int, ...]:
     return tuple(orders)
 
 
-def _ici(val, gvar, rss, dof, ok, oi, m, floor=None):
+def _ici(val, gvar, rss, dof, ok, oi, m, floor=None, narrowest=False):
     """ICI over the sizes of order index ``oi``: ``(chosen size index, noise variance)``.
 
     ``floor (Q, S)`` (optional): the least residual variance a fit of each size may claim
@@ -152,12 +161,15 @@ def _ici(val, gvar, rss, dof, ok, oi, m, floor=None):
     sig2 = np.zeros(Q)
     alive = np.ones(Q, dtype=bool)
     chosen = np.full(Q, -1)
+    done = np.zeros(Q, dtype=bool)
     for si in range(S):
         okc = ok[:, oi, si] & alive
         d = dof[:, oi, si]
         # residual variances of the fits so far with enough degrees of freedom (the first
         # well-posed fit's until there is one)
-        add = okc & ((d >= _MIN_DOF * m) | ((s2n == 0) & (d > 0)))
+        add = okc & ((d >= _MIN_DOF * m) | ((s2n == 0) & (d > 0))) & ~done
+        if narrowest:
+            done |= okc & (d >= _MIN_DOF * m)
         s2 = rss[:, oi, si] / np.maximum(d, 1)
         if floor is not None:
             s2 = np.where(d >= _MIN_DOF * m, s2, np.maximum(s2, floor[:, si]))
@@ -194,6 +206,31 @@ def _weak_floor(rss, dof, ok, oi, order, sizes) -> np.ndarray:
     s2f = np.where(good.any(1), rss[qi, oi, f] / np.maximum(dof[qi, oi, f], 1), 0.0)
     ratio = sizes[None, :].astype(np.float64) / sizes[f][:, None]
     return s2f[:, None] * np.minimum(ratio, 1.0) ** (order + 1)
+
+
+def _normal_noise(val, gvar, rss, dof, ok, oi, o, sizes, s2) -> np.ndarray:
+    """``(Q,)``: the noise variance the normal of order index ``oi`` (order ``o``) uses.
+
+    ``s2 (Q,)``: the order's ICI noise variance (returned for the plane, ``o < 2``, and when
+    neither rule below applies). The residual variance of a fit is the noise variance plus
+    what the jet cannot follow (truncation, and fine real detail), which grows with the
+    size; the mean over the sizes the ICI accepts (:func:`_ici`) therefore overstates the
+    noise where the surface has detail the wide fits smooth away (the bunny scans: an
+    order-4 fit's residual variance grows 1.46x from 21 to 65 points, 1.12x on i.i.d. noise
+    on a sphere), and an overstated noise makes a narrow fit's normal look noisier than it
+    is and a wide fit's drift smaller (its variance is subtracted from the measured drift,
+    :func:`measured_drift`). With ``_NOISE_NARROWEST`` only the fits up to the narrowest
+    with ``_MIN_DOF`` degrees of freedom per coefficient count: the least truncation
+    among the well-determined fits. On i.i.d. noise this costs little precision: nested
+    fits share their points, so their residual variances are strongly correlated and their
+    mean is hardly less variable than the narrowest one; it is pooled (median) over the
+    neighbours besides (:func:`point_mse`). With ``_WEAK_FLOOR``, fits below that size
+    claim no less than their truncation scaling allows (:func:`_weak_floor`).
+    """
+    if not (_WEAK_FLOOR or _NOISE_NARROWEST) or o < 2:
+        return s2
+    floor = _weak_floor(rss, dof, ok, oi, o, sizes) if _WEAK_FLOOR else None
+    return _ici(val, gvar, rss, dof, ok, oi, jets.n_coeffs(o), floor, _NOISE_NARROWEST)[1]
 
 
 def bias_rate(y, v, ok, t, u=None):
@@ -279,10 +316,13 @@ def point_statistics(hoods: Neighbourhoods, q, nbr, dist, *, orders, sizes,
     u = np.full((Q, O, S), np.nan)
     H = np.full((Q, O), np.nan)
     s2o = np.zeros((Q, O))
+    s2no = np.zeros((Q, O))
     n_rel = sizes.astype(np.float64) / float(sizes[0])
     r2 = _mean_sq_distance(dist, sizes)
     ici = [_ici(val, gvar, rss, dof, ok, oi, jets.n_coeffs(o)) for oi, o in enumerate(orders)]
     plane = _PLANE_ALIAS and orders[0] == 1 and O > 1
+    s2n_all = np.stack([_normal_noise(val, gvar, rss, dof, ok, oi, o, sizes, ici[oi][1])
+                        for oi, o in enumerate(orders)], 1)
     for oi, o in enumerate(orders):
         chosen, s2 = ici[oi]
         if plane and o == 1:
@@ -292,12 +332,12 @@ def point_statistics(hoods: Neighbourhoods, q, nbr, dist, *, orders, sizes,
         s2o[:, oi] = s2
         size[:, oi] = np.where(chosen >= 0, chosen, S - 1)
         okc = ok[:, oi]
+        s2n = s2n_all[:, oi] if o >= 2 else s2  # the plane: the quadratic's, as above
+        s2no[:, oi] = s2n
         v = s2[:, None, None] * gvar[:, oi]  # (Q, S, 3)
+        if _NOISE_NARROWEST:  # the slopes' variances: the normal's noise
+            v[..., :2] = s2n[:, None, None] * gvar[:, oi, :, :2]
         v3[:, oi] = np.where(okc[..., None], v, np.inf)
-        s2n = s2
-        if _WEAK_FLOOR and o >= 2:  # the normal's noise: no less than the floor allows
-            s2n = _ici(val, gvar, rss, dof, ok, oi, jets.n_coeffs(o),
-                       _weak_floor(rss, dof, ok, oi, o, sizes))[1]
         var[:, oi, :, 0] = np.where(okc, s2n[:, None] * (gvar[:, oi, :, 0] + gvar[:, oi, :, 1]),
                                     np.inf)
         var[:, oi, :, 1] = np.where(okc, v[..., 2], np.inf)
@@ -311,7 +351,8 @@ def point_statistics(hoods: Neighbourhoods, q, nbr, dist, *, orders, sizes,
         BC[:, oi], covBC[:, oi] = bias_rate(val[:, oi, :, 2], v[..., 2], okc, t, u[:, oi])
         last = np.where(okc, np.arange(S)[None, :], -1).max(1)
         H[:, oi] = np.where(last >= 0, val[np.arange(Q), oi, np.maximum(last, 0), 2], np.nan)
-    out = dict(size=size, var=var, B=B, varB=varB, BC=BC, covBC=covBC, u=u, H=H, s2=s2o)
+    out = dict(size=size, var=var, B=B, varB=varB, BC=BC, covBC=covBC, u=u, H=H, s2=s2o,
+               s2n=s2no)
     if _MEASURED_DRIFT:
         out["drift"] = measured_drift(val, v3, ok, dof, orders)
     if plane:
@@ -443,6 +484,18 @@ def store_mse(table: np.ndarray, rows: np.ndarray, mse: np.ndarray) -> None:
     table[..., rows] = np.moveaxis(np.where(np.isfinite(mse), mse, np.nan), 0, -1)
 
 
+def _pool_factor(s2: np.ndarray, rows: np.ndarray, pool: np.ndarray) -> np.ndarray:
+    """``(Q, O)``: a noise variance ``s2 (N, O)`` pooled over ``pool``, over the point's own.
+
+    The pooled value is the median (:func:`_pooled_median`); 1 where the point's own is 0 or
+    the ratio is not finite.
+    """
+    own, pooled = s2[rows], _pooled_median(s2, pool)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        f = np.where(own > 0, pooled / np.where(own > 0, own, 1.0), 1.0)
+    return np.where(np.isfinite(f), f, 1.0)
+
+
 def point_mse(stats: dict, rows: np.ndarray, pool: np.ndarray, sizes: np.ndarray,
               orders: tuple[int, ...]) -> np.ndarray:
     """``(Q, O, S, 2)`` estimated mean squared error of the normal and of H of ``rows``.
@@ -469,10 +522,9 @@ def point_mse(stats: dict, rows: np.ndarray, pool: np.ndarray, sizes: np.ndarray
     if _POOL_NOISE:
         # the noise variance pooled like the rest: one point's residual on few degrees of
         # freedom can be small by chance, and its variance with it
-        s2, s2p = stats["s2"][rows], _pooled_median(stats["s2"], pool)  # (Q, O)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            f = np.where(s2 > 0, s2p / np.where(s2 > 0, s2, 1.0), 1.0)
-        f = np.where(np.isfinite(f), f, 1.0)[:, :, None, None]
+        nkey = "s2n" if _NOISE_NARROWEST else "s2"
+        f = np.stack([_pool_factor(stats[key], rows, pool) for key in (nkey, "s2")], -1)
+        f = f[:, :, None, :]  # (Q, O, 1, 2): the normal's and H's noise
         with np.errstate(invalid="ignore"):  # both branches are evaluated: inf * 0 where
             mse = np.where(np.isfinite(mse), mse * f, mse)  # mse is inf is not taken
     plane = "alias" in stats
