@@ -255,3 +255,54 @@ def test_contacts_body_parts_and_inside_counts():
     assert r["parts"]["legL"]["inside"] == 1
     assert abs(r["depth_mm_max"] - 4.0) < 0.5
     assert r["per_frame"] == [1, 0]
+
+
+def test_span_optimum_rebuilds_the_model_output_and_lowers_the_loss():
+    """``gaps_contacts.span_optimum``: the garment rebuilt from the network's own output-basis
+    coefficients at a frame is the model's drape there (to float32 rounding); minimising the
+    training loss over those coefficients does not raise it; the inside count before is the
+    body query's; a model without an output basis is refused. ``loss_optimum`` (free
+    vertices) counts the same inside vertices before and does not raise the loss either."""
+    import dataclasses
+
+    import torch
+
+    from draping.body import AnnyBody
+    from draping.collision import MeshQuery
+    from draping.gaps import Case, drape_case, load_model
+
+    gc = _load("gaps_contacts", ROOT / "benchmarks" / "gaps_contacts.py")
+    torch.set_num_threads(1)
+    body = AnnyBody.load()
+    model = load_model("tshirt")
+    case = Case("walk", 0, 1.0, (0.3, 0.6, 0.4, 0.7, 0.5, 0.2), 5)
+    d = drape_case(model, body, case)
+    r = gc.span_optimum(model, d, body, case, 4, rounds=2)
+    assert r["frame"] == 4 and r["reconstruction_mm"] < 0.01
+    assert r["loss_span_J"] <= r["loss_model_J"] + 1e-6
+    q = MeshQuery(d.body_vertices[4].double(), body.faces)
+    assert r["inside_model"] == int((np.asarray(q.query(d.x[4].double()).distance) < 0).sum())
+    assert all(p.requires_grad for p in model.parameters())  # restored
+    o = gc.loss_optimum(model, d, body, 4, rounds=1)  # free vertices
+    assert o["inside_model"] == r["inside_model"]
+    assert o["loss_optimum_J"] <= o["loss_model_J"] + 1e-6
+    model.settings = dataclasses.replace(model.settings, rank=0)
+    with pytest.raises(ValueError, match="rank"):
+        gc.span_optimum(model, d, body, case, 4)
+
+
+def test_contacts_judge_a_model_by_its_own_training_loss():
+    """``gaps_contacts.train_settings_of``: the loss re-solved at a frame uses the settings the
+    model's record holds (the shipped dress: k_c = 1e5, not the default 1e4); a model without
+    a record gets the defaults with its own model settings."""
+    from draping.gaps import TrainSettings, load_model
+
+    gc = _load("gaps_contacts", ROOT / "benchmarks" / "gaps_contacts.py")
+    dress = load_model("dress")
+    rec = dress.record["training"]["settings"]
+    ts = gc.train_settings_of(dress)
+    assert ts.collision_stiffness == rec["collision_stiffness"] != \
+        TrainSettings().collision_stiffness
+    assert ts.model == dress.settings
+    dress.record = {}
+    assert gc.train_settings_of(dress) == TrainSettings(model=dress.settings)
