@@ -276,7 +276,7 @@ def chart(res: dict, path: Path) -> None:
         bottom += pin
     ax.set_xticks(xs, [f"{m}\neps_c {res['models'][m]['eps_c']:.3f} %" for m in labels])
     ax.set_ylabel("garment vertex-frames inside the body")
-    ax.set_title(f"{res['set']} cases: contacts by body part (hatched: pinched)")
+    ax.set_title(f"{res['set']} cases: contacts by body part\n(hatched: pinched)", fontsize=10)
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
