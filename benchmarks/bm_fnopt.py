@@ -21,6 +21,8 @@ cached in benchmarks/results/fnopt_refs/):
   each case's FNOpt e_CD beside its floors (:func:`floor_table`);
 - ``sweep``: the width/modes sweep (from benchmarks/fnopt_sweep.py's JSON), charted;
 - ``stability``: a long FNOpt rollout (``--frames 500 --res 100``): finite and bounded.
+- ``validation``: N = 10 rollouts of :data:`VALIDATION_CASES` (never a benchmark case) for
+  each of ``--candidates`` (weight paths): how weights are chosen across seeds and settings.
 
 All timings are CPU times of one thread on a shared, busy 2-core machine: ``cpu_ms_per_frame``
 is the whole rollout's process time per frame (problem set-up, the float64 energy record and
@@ -200,13 +202,57 @@ def part_super(args, net) -> dict:
                                               "e_3d": float(np.mean(m_up["e_3d"]))}}
 
 
-def part_general(args, net) -> dict:
-    rec = {"res": args.res, "frames": args.frames, "runs": []}
-    cases = [("corners", args.motion, sp) for sp in (1.0, 1.2, 1.5, 2.0)] + \
-        [(lay, args.motion, 1.0) for lay in ("diagonal", "mid-edges", "corner-centre",
-                                              "single")] + \
+def general_cases(motion: str = "xy") -> list:
+    """The ``general`` part's 13 cases ``(layout, motion, speed)`` (random layouts by name)."""
+    return [("corners", motion, sp) for sp in (1.0, 1.2, 1.5, 2.0)] + \
+        [(lay, motion, 1.0) for lay in ("diagonal", "mid-edges", "corner-centre", "single")] + \
         [("diagonal", "rot-a", 1.5), ("single", "xyz", 2.0)] + \
         [(lay, mo, 1.2) for lay, mo in zip(RANDOM_LAYOUTS, ("rot-b", "xy", "z"))]
+
+
+def _pins(seed: int, n: int) -> list:
+    return [tuple(round(float(v), 3) for v in pt) for pt in np.random.default_rng(seed).random(
+        (n, 2))]
+
+
+#: Validation rollouts for choosing weights (``validation`` part), never a benchmark case:
+#: other motions and speeds on the named layouts, and random pin sets from generators of their
+#: own (the first two from one generator, seed 77, as drawn in session 6).
+VALIDATION_CASES = (
+    ("diagonal", "z", 1.3), ("mid-edges", "rot-b", 1.0), ("corner-centre", "xyz", 1.3),
+    (_pins(77, 7)[:2], "xy-rev", 1.0), (_pins(77, 7)[2:5], "rot-a", 1.0),
+    ("corners", "xyz", 1.7), ("corner-centre", "rot-b-rev", 1.0), (_pins(78, 2), "y", 1.2))
+
+
+def part_validation(args, net) -> dict:
+    """N = 10 rollouts of :data:`VALIDATION_CASES` at ``--res`` (45 frames) per candidate.
+
+    ``--candidates``: comma-separated weight paths (``shipped``: the package's). Per candidate
+    the per-case e_CD x 1e3 / e_3D, their geometric means and the worst e_CD: how weights are
+    chosen (by seeds and settings) without looking at the benchmark's cases.
+    """
+    rec = {"res": args.res, "frames": 45, "iters": 10, "cases": [list(c) for c in
+                                                                 VALIDATION_CASES], "runs": []}
+    for w in args.candidates.split(","):
+        model = load_pretrained(None if w == "shipped" else w)
+        cd, e3 = [], []
+        for lay, mo, sp in VALIDATION_CASES:
+            s = SimSettings(res=(args.res, args.res), handles=lay, motion=mo, frames=45,
+                            speed=sp)
+            r = _measure(s, _step("fnopt", 10, model), reference_rollout(s, REFS), 3)
+            cd.append(r.get("e_cd", float("inf")))
+            e3.append(r.get("e_3d", float("inf")))
+        rec["runs"].append({"weights": w, "e_cd": cd, "e_3d": e3,
+                            "gmean_e_cd": float(np.exp(np.mean(np.log(cd)))),
+                            "worst_e_cd": max(cd),
+                            "gmean_e_3d": float(np.exp(np.mean(np.log(e3))))})
+        print(json.dumps(rec["runs"][-1]), flush=True)
+    return rec
+
+
+def part_general(args, net) -> dict:
+    rec = {"res": args.res, "frames": args.frames, "runs": []}
+    cases = general_cases(args.motion)
     if args.cases:
         cases = [cases[int(i)] for i in args.cases.split(",")]
     plan = [p.split(":") for p in args.plan.split(",")]
@@ -557,7 +603,7 @@ def _loglog_chart(curves: dict, xs: dict, path: Path, xlabel: str, ylabel: str, 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--part", choices=("iters", "super", "general", "sweep", "lbfgs",
-                                       "reference", "stability", "ratio"),
+                                       "reference", "stability", "ratio", "validation"),
                     default="iters")
     ap.add_argument("--res", type=int, default=32)
     ap.add_argument("--frames", type=int, default=60)
@@ -570,6 +616,8 @@ def main() -> None:
     ap.add_argument("--ratio-res", default="32,64", help="ratio part: resolutions whose iters "
                     "JSON is read")
     ap.add_argument("--weights", default=None)
+    ap.add_argument("--candidates", default="shipped", help="validation part: comma-separated "
+                    "weight paths ('shipped': the package's)")
     ap.add_argument("--cases", default="", help="general part: comma-separated case numbers")
     ap.add_argument("--plan", default="fnopt:10,pcg:10,pgd:10,lbfgs:100",
                     help="general part: optimiser:iterations, comma-separated")
@@ -613,7 +661,8 @@ def main() -> None:
            "note": "CPU times, 1 thread, shared busy 2-core machine"}
     rec.update({"iters": part_iters, "super": part_super, "general": part_general,
                 "lbfgs": part_lbfgs, "reference": part_reference,
-                "stability": part_stability, "ratio": part_ratio}[args.part](args, net))
+                "stability": part_stability, "ratio": part_ratio,
+                "validation": part_validation}[args.part](args, net))
     rec.update(machine=platform.processor() or platform.machine(), python=platform.python_version(),
                date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                load_average=os.getloadavg())

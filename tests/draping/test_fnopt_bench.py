@@ -92,3 +92,23 @@ def test_parsimony_pick_takes_the_smallest_model_within_ten_percent():
     assert sw.parsimony_pick(runs, tol=0.5)["parameters"] == 1
     with pytest.raises(ValueError, match="val_subopt"):
         sw.parsimony_pick([{"parameters": 1, "val_subopt": None}])
+
+
+def test_validation_cases_are_never_benchmark_cases(bm):
+    def key(lay):
+        lay = bm.RANDOM_LAYOUTS.get(lay, lay) if isinstance(lay, str) else lay
+        return lay if isinstance(lay, str) else tuple(tuple(p) for p in lay)
+
+    bench = {(key(lay), mo, sp) for mo in ("xy", "xyz", "z") for lay, mo, sp in
+             bm.general_cases(mo)}
+    val = [(key(lay), mo, sp) for lay, mo, sp in bm.VALIDATION_CASES]
+    assert len(set(val)) == len(val) == 8
+    assert not set(val) & bench
+    # the random pin sets are new sets, inside the sheet
+    pins = [k for k, _, _ in val if not isinstance(k, str)]
+    assert len(pins) == 3
+    assert not set(pins) & {key(v) for v in bm.RANDOM_LAYOUTS.values()}
+    assert all(0.0 <= c <= 1.0 for k in pins for p in k for c in p)
+    # the general part's own list is unchanged by the refactor: 13 cases, its random sets named
+    cases = bm.general_cases("xy")
+    assert len(cases) == 13 and [c[0] for c in cases[-3:]] == list(bm.RANDOM_LAYOUTS)
