@@ -58,6 +58,7 @@ __all__ = [
     "resume_state",
     "JsonlLog",
     "read_jsonl",
+    "truncate_jsonl",
     "progress",
 ]
 
@@ -527,6 +528,51 @@ def read_jsonl(path: str | os.PathLike) -> list[Any]:
         except json.JSONDecodeError:
             pass
     return out
+
+
+def truncate_jsonl(path: str | os.PathLike, keep: Callable[[Any], bool]) -> int:
+    """Drop the records of a JSONL file that ``keep`` rejects; return how many were dropped.
+
+    What a run resumed from a checkpoint does with its logs: the lines written after the
+    checkpoint (by a process stopped before the next one) are dropped, so that the steps
+    done again are not logged twice. A torn last line is dropped too. The file is rewritten
+    atomically (:func:`atomic_write_text`) and only when something is dropped.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file (absent: nothing to do, 0).
+    keep : callable
+        ``keep(record) -> bool`` for each decoded record, in file order.
+
+    Returns
+    -------
+    int
+        The number of records dropped.
+
+    Raises
+    ------
+    TypeError
+        If ``keep`` is not callable.
+    ValueError
+        If a line other than an unterminated last one is not JSON (:func:`read_jsonl`).
+
+    Examples
+    --------
+    >>> truncate_jsonl(run / "log.jsonl", lambda r: r["step"] < ck.meta["step"])  # doctest: +SKIP
+    """
+    if not callable(keep):
+        raise TypeError(f"keep must be callable (a record -> bool), got {type(keep).__name__}")
+    p = Path(os.fspath(path))
+    if not p.is_file():
+        return 0
+    data = p.read_bytes()
+    records = read_jsonl(p)
+    kept = [r for r in records if keep(r)]
+    torn = bool(data) and not data.endswith(b"\n")
+    if len(kept) < len(records) or torn:
+        atomic_write_text(p, "".join(json.dumps(r, separators=(",", ":")) + "\n" for r in kept))
+    return len(records) - len(kept)
 
 
 class JsonlLog:

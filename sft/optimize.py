@@ -24,7 +24,6 @@ for ``metrics.json``, so memory does not grow with the number of frames.
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 import time
 import warnings
@@ -210,8 +209,7 @@ def _truncate_jsonl(path: Path, start: int) -> None:
     if start == 0:
         path.unlink()
         return
-    kept = [r for r in runs.read_jsonl(path) if r["frame"] < start]
-    runs.atomic_write_text(path, "".join(json.dumps(r) + "\n" for r in kept))
+    runs.truncate_jsonl(path, lambda r: r["frame"] < start)
 
 
 def _model_info(model: DeformationModel, rows: list[dict]) -> dict:

@@ -346,6 +346,7 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
     if ck is None:
         pool = Pool(s, gen)
         step = 0
+        runs.truncate_jsonl(out / "log.jsonl", lambda r: False)  # a run never checkpointed
     else:
         model.load_state_dict(ck.tensors["model"])
         opt.load_state_dict(ck.tensors["opt"])
@@ -356,6 +357,8 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
         gen.set_state(ck.tensors["gen"])
         step, history, elapsed = ck.meta["step"], ck.meta["history"], ck.meta["elapsed"]
         cpu_elapsed = ck.meta.get("cpu_elapsed", 0.0)
+        # records of steps after the checkpoint (a run stopped between two) are done again
+        runs.truncate_jsonl(out / "log.jsonl", lambda r: r.get("step", 0) <= step)
         log(f"resumed at step {step} ({elapsed / 60:.1f} min so far)")
     t_val = time.perf_counter()
     val = validation_set(s.res) if val is None else val

@@ -275,7 +275,14 @@ def train(settings: TrainSettings, out_dir: str | Path, *, minutes: float | None
     -------
     TrainResult
     """
-    from polygeo.runs import JsonlLog, progress, read_jsonl, resume_state, save_checkpoint
+    from polygeo.runs import (
+        JsonlLog,
+        progress,
+        read_jsonl,
+        resume_state,
+        save_checkpoint,
+        truncate_jsonl,
+    )
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -288,6 +295,8 @@ def train(settings: TrainSettings, out_dir: str | Path, *, minutes: float | None
         tr.load_state(ck.tensors, ck.meta["step"])
         cpu0, wall0 = float(ck.meta["cpu_seconds"]), float(ck.meta["wall_seconds"])
         tr.timing.update(ck.meta.get("timing", {}))
+        # records of steps after the checkpoint (a run stopped between two) are done again
+        truncate_jsonl(out / "log.jsonl", lambda r: r.get("step", -1) < tr.step)
     elif (out / "log.jsonl").exists():
         (out / "log.jsonl").unlink()
     c_start, w_start = time.process_time(), time.perf_counter()

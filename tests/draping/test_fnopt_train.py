@@ -1,10 +1,13 @@
 """``draping.fnopt.train.train``: seeded without touching the global RNG, resumable exactly."""
 
+import json
+
 import torch
 
 from draping.fnopt import cloth, solvers
 from draping.fnopt.model import FNO, FNOConfig
 from draping.fnopt.train import TrainSettings, train
+from polygeo.runs import read_jsonl
 
 torch.set_num_threads(1)
 
@@ -49,8 +52,13 @@ def test_an_interrupted_run_resumes_to_the_same_weights(tmp_path):
     out = tmp_path / "parts"
     first = train(s, out, quiet=True, log=lambda *a: None, val=val, max_minutes=0.0)
     assert not first["finished"] and first["step"] < s.steps
+    # a record logged after the checkpoint by a process stopped before the next one
+    with open(out / "log.jsonl", "a") as fh:
+        fh.write(json.dumps({"step": first["step"] + 1, "loss_ema": 0.0}) + "\n")
     torch.manual_seed(99)                               # whatever the caller's RNG holds
     rest = train(s, out, quiet=True, log=lambda *a: None, val=val)
     assert rest["finished"] and rest["step"] == s.steps
     a, b = _weights(tmp_path / "whole"), _weights(out)
     assert all(torch.equal(a[k], b[k]) for k in a)
+    steps = [r["step"] for r in read_jsonl(out / "log.jsonl")]
+    assert steps == [r["step"] for r in read_jsonl(tmp_path / "whole" / "log.jsonl")]

@@ -70,6 +70,10 @@ def test_train_resume_and_drape(tmp_path, capsys):
     rec = json.loads((run / "model.json").read_text())
     assert rec["training"]["steps"] == 2
     assert set(rec["held_out"]["mean"]) == {"eps_e", "eps_a", "eps_c"}
+    # a record logged after the last checkpoint by a process stopped before the next one
+    last = json.loads((run / "log.jsonl").read_text().splitlines()[-1])
+    with open(run / "log.jsonl", "a") as fh:
+        fh.write(json.dumps({**last, "step": 2}) + "\n")
     assert main([*args, "--steps", "3", "--resume"]) == 0
     log = [json.loads(s) for s in (run / "log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in log] == [0, 1, 2]

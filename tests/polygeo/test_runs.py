@@ -24,6 +24,7 @@ from polygeo.runs import (
     read_jsonl,
     resume_state,
     save_checkpoint,
+    truncate_jsonl,
 )
 
 
@@ -270,6 +271,26 @@ def test_jsonl_log_appends_and_ignores_a_torn_last_line(tmp_path):
     with pytest.raises(ValueError, match="line 2"):
         read_jsonl(p)
     assert read_jsonl(tmp_path / "absent.jsonl") == []
+
+
+def test_truncate_jsonl_drops_what_keep_rejects(tmp_path):
+    p = tmp_path / "log.jsonl"
+    with JsonlLog(p) as log:
+        for step in range(5):
+            log.append({"step": step})
+    with open(p, "ab") as fh:
+        fh.write(b'{"step": 5, "lo')  # killed mid-write after the checkpoint at step 3
+    assert truncate_jsonl(p, lambda r: r["step"] < 3) == 2
+    assert read_jsonl(p) == [{"step": 0}, {"step": 1}, {"step": 2}]
+    assert p.read_bytes().endswith(b"\n")  # the torn line is gone with the dropped ones
+    before = p.stat().st_mtime_ns
+    assert truncate_jsonl(p, lambda r: True) == 0
+    assert p.stat().st_mtime_ns == before  # nothing dropped, nothing torn: not rewritten
+    assert truncate_jsonl(p, lambda r: False) == 3 and read_jsonl(p) == []
+    assert truncate_jsonl(tmp_path / "absent.jsonl", lambda r: False) == 0
+    assert not (tmp_path / "absent.jsonl").exists()
+    with pytest.raises(TypeError, match="keep must be callable"):
+        truncate_jsonl(p, 3)
 
 
 def test_progress_quiet_and_counts(capsys):
