@@ -33,3 +33,15 @@ def test_readme_points_inside_the_repository():
         if not target.startswith("http"):
             assert (README.parent / target).exists(), target
     assert os.path.isfile(README.parent / "docs" / "ARCHITECTURE.md")
+
+
+def test_docs_point_inside_the_repository():
+    """README and docs/: relative links resolve, and no path of the machine they were written on."""
+    root = README.parent
+    for doc in [README, *sorted((root / "docs").rglob("*.md"))]:
+        text = doc.read_text()
+        for bad in ("/tmp/", "/work/", "../shared"):
+            assert bad not in text, (doc.name, bad)
+        for target in re.findall(r"\]\(([^)#]+)", text):
+            if not target.startswith("http"):
+                assert (doc.parent / target).exists(), (doc.name, target)
