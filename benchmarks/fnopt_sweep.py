@@ -49,6 +49,23 @@ def parsimony_pick(runs: list, key: str = "val_subopt", tol: float = 0.1) -> dic
     return min((r for r in ok if r[key] <= (1 + tol) * best), key=lambda r: r["parameters"])
 
 
+def row_config(row: dict) -> FNOConfig:
+    """The FNO config a sweep row was trained with: its width and modes, the step rule it
+    records (rows written before the rule was recorded: no normal direction, as they were
+    trained) and the training defaults' layers and projection."""
+    s = TrainSettings(width=row["width"], modes=row["modes"])
+    return FNOConfig(row["width"], row["modes"], row.get("layers", s.layers),
+                     row.get("projection", s.projection), row.get("normal", False),
+                     row.get("normal_split", 0))
+
+
+def trained_net(row: dict, weights: Path) -> FNO:
+    """The trained FNO of a sweep row (weights: its ``model.pt``), in evaluation mode."""
+    net = FNO(row_config(row))
+    net.load_state_dict(torch.load(weights, weights_only=True))
+    return net.eval()
+
+
 def evaluate_64(net, layouts: list, frames: int = 60) -> dict:
     """e_CD x 1e3, e_3D (means over every 3rd frame) and CPU ms per frame of FNOpt N = 10."""
     out = {}
@@ -107,7 +124,9 @@ def main() -> None:
             s = TrainSettings(width=w, modes=m, steps=args.steps)
             t0 = time.perf_counter()
             r = train(s, Path(args.work) / cfg, quiet=True, log=lambda *_: None, val=val)
-            rec["runs"].append({"width": w, "modes": m, "parameters": r["parameters"],
+            rec["runs"].append({"width": w, "modes": m, "layers": s.layers,
+                                "projection": s.projection, "normal": s.normal,
+                                "normal_split": s.normal_split, "parameters": r["parameters"],
                                 "val_subopt": r["val_subopt"], "history": r["history"],
                                 "train_wall_minutes": (time.perf_counter() - t0) / 60,
                                 "train_cpu_minutes": r["cpu_minutes"]})
@@ -116,10 +135,7 @@ def main() -> None:
             path.write_text(json.dumps(rec, indent=1))
     for r in rec["runs"]:
         if "eval_64" not in r and r.get("source") != "shipped":
-            net = FNO(FNOConfig(r["width"], r["modes"]))
-            net.load_state_dict(torch.load(Path(args.work) / f"{r['width']}x{r['modes']}" /
-                                           "model.pt", weights_only=True))
-            net.eval()
+            net = trained_net(r, Path(args.work) / f"{r['width']}x{r['modes']}" / "model.pt")
             r["eval_64"] = evaluate_64(net, lays)
             print(r["width"], r["modes"], json.dumps(r["eval_64"]), flush=True)
     if args.shipped and not any(r.get("source") == "shipped" for r in rec["runs"]):
@@ -137,7 +153,7 @@ def main() -> None:
                            "the best", "width": pick["width"], "modes": pick["modes"]}
     rec["eval_64_settings"] = {"layouts": lays, "motion": "xy", "frames": 60, "iters": 10}
     path.write_text(json.dumps(rec, indent=1))
-    _chart(rec, OUT / "bm_fnopt_sweep.png")
+    _chart(rec, OUT / (Path(args.out).stem.replace("fnopt_sweep", "bm_fnopt_sweep") + ".png"))
     print("pick", json.dumps(rec["pick"]))
 
 

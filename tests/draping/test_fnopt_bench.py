@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -112,3 +113,22 @@ def test_validation_cases_are_never_benchmark_cases(bm):
     # the general part's own list is unchanged by the refactor: 13 cases, its random sets named
     cases = bm.general_cases("xy")
     assert len(cases) == 13 and [c[0] for c in cases[-3:]] == list(bm.RANDOM_LAYOUTS)
+
+
+def test_sweep_rows_rebuild_the_step_rule_they_were_trained_with(tmp_path):
+    """A row records its step rule; older rows (no field) were trained without the normal."""
+    spec = importlib.util.spec_from_file_location("fnopt_sweep",
+                                                  ROOT / "benchmarks" / "fnopt_sweep.py")
+    sw = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(sw)
+    from draping.fnopt.model import FNO, FNOConfig
+
+    cfg = FNOConfig(4, 2, 1, 8, True, 4)
+    torch.save(FNO(cfg).state_dict(), tmp_path / "model.pt")
+    row = {"width": 4, "modes": 2, "layers": 1, "projection": 8, "normal": True,
+           "normal_split": 4}
+    assert sw.row_config(row) == cfg
+    net = sw.trained_net(row, tmp_path / "model.pt")
+    assert not net.training
+    old = sw.row_config({"width": 16, "modes": 8})
+    assert (old.normal, old.normal_split) == (False, 0)
