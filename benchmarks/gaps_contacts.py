@@ -188,8 +188,8 @@ def loss_optimum(model, drape, body, frame: int, rounds: int = 15) -> dict:
     x1 = _minimise([free], lambda: free, total, contacts_of, rounds)
     after = float(total(x1, contacts_of(x1)))
     q.update(bv[2].double())
-    d1 = np.asarray(q.query(x1.double()).distance)
-    return {"frame": t, "inside_model": _inside(q, bv[2], x0[2]),
+    d0, d1 = (np.asarray(q.query(x.double()).distance) for x in (x0[2], x1))
+    return {"frame": t, "inside_model": int((d0 < 0).sum()),
             "inside_optimum": int((d1 < 0).sum()), "loss_model_J": before,
             "loss_optimum_J": after, "min_distance_optimum_mm": 1000.0 * float(d1.min())}
 
@@ -223,14 +223,12 @@ def span_optimum(model, drape, body, case, frame: int, rounds: int = 10) -> dict
         posed = body.pose(shape, seq.rotations[t:t + 1], seq.translation[t:t + 1])
         f = pose_features(seq.rotations[None], seq.velocity[None], shape[None],
                           pose_bone_indices(body), up_vector())
-        y, _ = model.gru(f, model.zero_state(1))
-        z0 = model.reduce(y)[0, t].clone()
+        z0 = model.coefficients(f)[0][0, t].clone()
     rest_v = torch.as_tensor(drape.case.garment.vertices, dtype=torch.float32)
     z = z0.clone().requires_grad_(True)
 
     def x_of():
-        disp = (model.basis(z) * model.unit).reshape(-1, 3)
-        return model.skin((rest_v + disp)[None], posed.transforms)[0]
+        return model.skin((rest_v + model.displacement(z))[None], posed.transforms)[0]
 
     x0 = drape.x[t - 2:t + 1].clone()
     bv = drape.body_vertices[t - 2:t + 1]

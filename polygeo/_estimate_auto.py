@@ -321,8 +321,6 @@ def point_statistics(hoods: Neighbourhoods, q, nbr, dist, *, orders, sizes,
     r2 = _mean_sq_distance(dist, sizes)
     ici = [_ici(val, gvar, rss, dof, ok, oi, jets.n_coeffs(o)) for oi, o in enumerate(orders)]
     plane = _PLANE_ALIAS and orders[0] == 1 and O > 1
-    s2n_all = np.stack([_normal_noise(val, gvar, rss, dof, ok, oi, o, sizes, ici[oi][1])
-                        for oi, o in enumerate(orders)], 1)
     for oi, o in enumerate(orders):
         chosen, s2 = ici[oi]
         if plane and o == 1:
@@ -332,7 +330,8 @@ def point_statistics(hoods: Neighbourhoods, q, nbr, dist, *, orders, sizes,
         s2o[:, oi] = s2
         size[:, oi] = np.where(chosen >= 0, chosen, S - 1)
         okc = ok[:, oi]
-        s2n = s2n_all[:, oi] if o >= 2 else s2  # the plane: the quadratic's, as above
+        # the normal's noise (the plane: the quadratic's, as above)
+        s2n = _normal_noise(val, gvar, rss, dof, ok, oi, o, sizes, s2) if o >= 2 else s2
         s2no[:, oi] = s2n
         v = s2[:, None, None] * gvar[:, oi]  # (Q, S, 3)
         if _NOISE_NARROWEST:  # the slopes' variances: the normal's noise

@@ -32,6 +32,28 @@ scan line or ring: fitted at a lower order), ``DEGENERATE`` (not even a plane co
 fitted: normal from PCA only, curvatures 0), ``ILL_CONDITIONED``. Values of flagged points
 are finite fallbacks, never NaN (except ``NONFINITE_INPUT``).
 
+Automatic settings (``k="auto"`` / ``order="auto"`` on a k-NN list without weights,
+:mod:`polygeo._estimate_auto`): variances from the fits' residuals, bias from how each quantity
+drifts with the neighbourhood size (for H also the attenuation by noise that small
+neighbourhoods suffer), sizes capped where the fits of nested neighbourhoods stop agreeing
+within ``AUTO_K_GAMMA`` standard deviations (ICI); every statistic pooled (median) over the
+``AUTO_K_SMOOTH`` nearest neighbours, so that the choice depends neither on the chunk a point
+is processed in nor on the unit. The curvatures (and ``order``, ``n_neighbors``, ``frame``,
+``coeffs``) are those of the fixed ``(k, order)`` chosen for them; the normal is that of the
+fixed setting chosen for it (with ``order="auto"`` possibly a plane), the curvatures' signs
+and directions following it. Clean data get a 4-jet on small neighbourhoods, noisy data wider
+ones and lower orders (figures: README, Performance).
+
+Measured choices. ``max_cond`` defaults to ``MAX_COND = {1: 1e3, 2: 1e3, 3: 1e4, 4: 1e5}``:
+well-spread 20-neighbourhoods measure about 6-30 at order 2 (up to a few 1e3 at order 4);
+points on two scan lines measure 1e4 and more at order 2 and give curvatures that are guesses
+across the lines. ``interpolate=True`` removes about a quarter of the curvatures' truncation
+bias at order 2 on exact samples (median relative error of H, k = 20, 10k-vertex meshes: torus
+1.7e-2 -> 1.3e-2, sphere 1.9e-3 -> 1.4e-3, open cylinder 1.4e-3 -> 1.1e-3); on noisy samples
+(already at 0.01 % of the diagonal) it passes the jet through the query point's noise and about
+doubles the curvature error, hence not the default. Re-fitting in the Monge frame of a first
+fit changes nothing at order 2 (median errors within 3 %), so it is not offered.
+
 Two execution paths compute the same quantities: a compiled one (numba, used when no gradient
 is needed) and a torch one (differentiable with respect to the points, used when ``points``
 is a tensor requiring grad, or with ``backend="torch"``).
@@ -236,45 +258,28 @@ def differential_quantities(
         Points or mesh vertices (length unit L). Non-finite points are allowed: they get
         status ``NONFINITE_INPUT`` and NaN outputs and are nobody's neighbour.
     faces : (F, 3) int, optional
-        Triangles when ``points`` are mesh vertices: used to orient the normals (winding made
-        consistent, outward for closed components; duplicate vertices welded first) and, with
-        ``rings``, as neighbourhoods.
+        Triangles when ``points`` are mesh vertices: orient the normals (module docstring)
+        and, with ``rings``, give the neighbourhoods.
     normals : (N, 3) float, optional
         Input normals: only their signs are used, to orient the estimates.
     k : int or "auto"
-        Number of nearest neighbours besides the point itself, so that each fit uses
-        ``k + 1`` points: the convention of CGAL's ``jet_estimate_normals`` (same k, same
-        points, same result). Clipped to the number of finite points. Must be at least
-        ``n_coeffs(order) - 1`` (5 for order 2).
-        ``"auto"`` (alone or with ``order="auto"``, on a k-NN list without weights): per
-        point, the order of ``auto_orders`` and the size of ``k_candidates`` with the least
-        estimated mean squared error (:mod:`polygeo._estimate_auto`), chosen apart for the
-        normal and for the curvatures: variances from the fits' residuals, bias from how
-        each quantity drifts with the neighbourhood size (for H also the attenuation by
-        noise that small neighbourhoods suffer), sizes capped where the fits of
-        nested neighbourhoods stop agreeing within ``AUTO_K_GAMMA`` standard deviations
-        (ICI); every statistic pooled (median) over the ``AUTO_K_SMOOTH`` nearest neighbours,
-        so that the choice does not depend on the chunk a point is processed in, nor on the
-        unit. The curvatures (and ``order``, ``n_neighbors``, ``frame``, ``coeffs``) are
-        exactly those of the fixed ``(k, order)`` chosen for them; the normal is that of the
-        fixed setting chosen for it (with ``order="auto"`` possibly a plane), the curvatures'
-        signs and directions following it. Clean data get a 4-jet on small neighbourhoods,
-        noisy data wider ones and lower orders (figures: README, Performance). With weights,
-        a radius or rings the older per-point ICI on sizes and F-test on orders apply.
+        Nearest neighbours besides the point itself (each fit uses ``k + 1`` points, as CGAL's
+        ``jet_estimate_normals``); clipped to the finite points; at least ``n_coeffs(order) -
+        1`` (5 for order 2).
+        ``"auto"``: per point, the order of ``auto_orders`` and the size of ``k_candidates``
+        of least estimated error, apart for the normal and the curvatures (module docstring,
+        "Automatic settings"; with weights, a radius or rings: ICI on sizes, F-test on orders).
     radius : float, optional
         Use all neighbours within this distance (L) instead of k nearest (``k`` then caps
         the count at ``k + 1`` points, nearest kept, unless ``k="auto"``).
     rings : int, optional
         With ``faces``: use the mesh ``rings``-ring of each vertex as its neighbourhood.
     order : int or "auto"
-        Jet order 1..4 (1: plane, zero curvature; 2: osculating quadric; 3, 4: cubic and
-        quartic terms, more accurate on clean data, more sensitive to noise). ``"auto"``: per
-        point, the order of ``auto_orders`` with the least estimated error (see ``k``; order 1
-        only when it is the only candidate); with weights, a radius or rings, the lowest
-        order no higher one improves significantly (F-test on the residuals at ``alpha``).
+        Jet order 1..4 (1: plane; 2: osculating quadric; 3, 4: more accurate on clean data,
+        more sensitive to noise). ``"auto"``: see ``k`` (order 1 only as the sole candidate;
+        with weights, a radius or rings the F-test at ``alpha``).
     weights : {None, "gaussian"}
-        Uniform least squares (CGAL) or Gaussian weights ``exp(-d^2 / rms^2)`` of the
-        distance to the point.
+        Uniform least squares (CGAL) or Gaussian weights ``exp(-d^2 / rms^2)`` of distance.
     orient : {"auto", "input", "mesh", "propagate", "none"}
         Source of the normals' signs (see the module docstring); "none" keeps the fit's sign.
     monge : bool
@@ -286,34 +291,22 @@ def differential_quantities(
     progress : bool or None
         Show a progress bar; None: for inputs of at least 200 000 points.
     workers : int
-        Threads for the k-d tree (``-1``: all cores; the compiled kernels use numba's threads).
+        Threads for the k-d tree (``-1``: all cores; the kernels use numba's threads).
     backend : {"auto", "numba", "torch"}
         "torch" is differentiable w.r.t. ``points``; "auto" picks it when ``points`` is a
         tensor requiring grad.
-    k_candidates : tuple of int
-        Neighbourhood sizes tried by ``k="auto"``.
-    auto_orders : tuple of int
-        Orders tried by ``order="auto"``.
+    k_candidates, auto_orders : tuple of int
+        Neighbourhood sizes tried by ``k="auto"``, orders tried by ``order="auto"``.
     alpha : float
         Significance level of the order F-test.
     max_cond : float, optional
         Largest accepted condition number of a neighbourhood's preconditioned, equilibrated
-        least-squares system (:func:`polygeo.jets.fit`); default per order
-        ``MAX_COND = {1: 1e3, 2: 1e3, 3: 1e4, 4: 1e5}``. Well-spread 20-neighbourhoods
-        measure about 6-30 at order 2 (up to a few 1e3 at order 4); points on two scan lines
-        measure 1e4 and more at order 2 and give curvatures that are guesses across the
-        lines, so they are fitted at a lower order and flagged ``ORDER_REDUCED``.
+        least-squares system (:func:`polygeo.jets.fit`); default per order ``MAX_COND``
+        (module docstring, "Measured choices"); above it a lower order, ``ORDER_REDUCED``.
     interpolate : bool
-        Constrain each jet to pass through its query point (Cazals & Pouget's interpolation
-        variant, :func:`polygeo.jets.fit`). Default False (approximation: the jet's constant
-        term is free). Use True for exact samples (vertices of analytic, CAD or subdivision
-        surfaces): at order 2 it removes about a quarter of the truncation bias of the
-        curvatures (measured median relative error of H, k = 20, 10k-vertex meshes: torus
-        1.7e-2 -> 1.3e-2, sphere 1.9e-3 -> 1.4e-3, open cylinder 1.4e-3 -> 1.1e-3); on noisy
-        samples (already at noise 0.01 % of the diagonal) it passes the jet through the noise
-        of the query point and about doubles the curvature error, hence not the default.
-        Re-fitting in the Monge frame of a first fit was measured too and changes nothing at
-        order 2 (median errors within 3 %), so it is not offered.
+        Pass each jet through its query point (Cazals & Pouget's interpolation variant):
+        for exact samples (analytic, CAD, subdivision surfaces); on noisy ones it about
+        doubles the curvature error (module docstring, "Measured choices").
 
     Returns
     -------
@@ -341,15 +334,7 @@ def differential_quantities(
     hoods = Neighbourhoods(P, finite, faces=faces_np, settings=s, graph=s.orient != "none")
     # frames -> fit -> quantities, chunk by chunk: compiled (fused where it can) or torch
     out = empty_quantities(P.shape[0], s.n_coeffs)
-    parts = [] if s.use_torch else None  # the torch path's differentiable results
-    if _auto_compiled(s):  # automatic order / size on one k-NN list: two passes
-        fit_auto(hoods, out, settings=s)
-    for q in ([] if _auto_compiled(s) else hoods.chunks(s.batch_size, s.progress)):
-        nbr, dist = hoods.query(q)
-        if s.use_torch:
-            parts.append(fit_torch(pts_t, hoods, q, nbr, dist, out, settings=s))
-        else:
-            fit_compiled(hoods, q, nbr, dist, out, settings=s)
+    parts = _fit_points(pts_t, hoods, out, s)
     # orientation: one sign per point from the input normals, the faces or propagation
     orient_args = dict(P=P, graph=hoods.graph, reference=reference, faces=faces_np,
                        orient=s.orient, workers=s.workers)
@@ -362,6 +347,25 @@ def differential_quantities(
             non_manifold_status(P, faces_np, out, radius=s.radius, rings=s.rings))
     result = DifferentialQuantities(points=pts_t, **dq)
     return _to_numpy(result, points) if numpy_in else result
+
+
+def _fit_points(pts_t: torch.Tensor, hoods: Neighbourhoods, out: Any, s: Settings
+                ) -> list | None:
+    """Fit every point into ``out`` (:func:`empty_quantities`).
+
+    Returns the torch path's differentiable results (None on the compiled paths).
+    """
+    if _auto_compiled(s):  # automatic order / size on one k-NN list: two passes
+        fit_auto(hoods, out, settings=s)
+        return None
+    parts = [] if s.use_torch else None
+    for q in hoods.chunks(s.batch_size, s.progress):
+        nbr, dist = hoods.query(q)
+        if s.use_torch:
+            parts.append(fit_torch(pts_t, hoods, q, nbr, dist, out, settings=s))
+        else:
+            fit_compiled(hoods, q, nbr, dist, out, settings=s)
+    return parts
 
 
 def _auto_compiled(s: Settings) -> bool:

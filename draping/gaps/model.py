@@ -163,12 +163,28 @@ class GapsModel(nn.Module):
         hidden : (depth, B, width) float tensor
             Final state.
         """
-        b, t, _ = features.shape
+        z, h = self.coefficients(features, hidden)
+        return self.displacement(z), h
+
+    def coefficients(self, features: torch.Tensor, hidden: torch.Tensor | None = None
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`forward` without its last layer.
+
+        Returns the output basis' inputs ``(B, T, rank)`` (``width`` when ``rank = 0``) and the
+        final ``(depth, B, width)`` state.
+        """
         if hidden is None:
-            hidden = self.zero_state(b)
+            hidden = self.zero_state(features.shape[0])
         y, h = self.gru(features.to(self.template.dtype), hidden)
-        d = self.basis(self.reduce(y)) * self.unit  # (B, T, 3V)
-        return d.reshape(b, t, self.n_vertices, 3), h
+        return self.reduce(y), h
+
+    def displacement(self, coefficients: torch.Tensor) -> torch.Tensor:
+        """The learnt output basis: displacements ``(..., V, 3)`` (m) of the unposed garment.
+
+        ``coefficients`` ``(..., rank)``: from :meth:`coefficients`.
+        """
+        d = self.basis(coefficients) * self.unit  # (..., 3V)
+        return d.reshape(*coefficients.shape[:-1], self.n_vertices, 3)
 
     def state(self, features: torch.Tensor, hidden: torch.Tensor | None = None) -> torch.Tensor:
         """The GRU state after reading ``features`` ``(B, T, D)`` (no output layer).

@@ -562,10 +562,7 @@ def soft_backward(
                 ia, ib = _tile_range(d[_YMIN], d[_YMAX], margin, i0, i1)
                 if ja > jb or ia > ib:
                     continue
-                for r in range(3):
-                    gv[r, 0] = 0.0
-                    gv[r, 1] = 0.0
-                    gv[r, 2] = 0.0
+                gv[:] = 0.0
                 iz0 = d[_IZ0]
                 iz1 = d[_IZ0 + 1]
                 iz2 = d[_IZ0 + 2]
