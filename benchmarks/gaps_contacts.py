@@ -210,8 +210,7 @@ def span_optimum(model, drape, body, case, frame: int, rounds: int = 10) -> dict
     import torch
 
     from draping.collision import MeshQuery
-    from draping.gaps import pose_features, sequence_of
-    from draping.gaps.infer import pose_bone_indices, up_vector
+    from draping.gaps import motion_features, sequence_of
 
     if model.settings.rank <= 0:
         raise ValueError(f"model: expected an output basis (rank > 0), got rank "
@@ -221,8 +220,7 @@ def span_optimum(model, drape, body, case, frame: int, rounds: int = 10) -> dict
     shape = drape.case.shape
     with torch.no_grad():
         posed = body.pose(shape, seq.rotations[t:t + 1], seq.translation[t:t + 1])
-        f = pose_features(seq.rotations[None], seq.velocity[None], shape[None],
-                          pose_bone_indices(body), up_vector())
+        f = motion_features(body, seq.rotations[None], seq.velocity[None], shape[None])
         z0 = model.coefficients(f)[0][0, t].clone()
     rest_v = torch.as_tensor(drape.case.garment.vertices, dtype=torch.float32)
     z = z0.clone().requires_grad_(True)

@@ -53,6 +53,7 @@ __all__ = [
     "frame_metrics",
     "pose_bone_indices",
     "up_vector",
+    "motion_features",
 ]
 
 DATA_DIR = Path(__file__).resolve().parent.parent / "data"
@@ -86,6 +87,35 @@ def up_vector() -> torch.Tensor:
     """``(3,)`` unit up direction (against :data:`draping.physics.GRAVITY`)."""
     g = torch.tensor(GRAVITY, dtype=torch.float32)
     return -g / g.norm()
+
+
+def motion_features(body: AnnyBody, rotations: torch.Tensor, velocity: torch.Tensor,
+                    shape: torch.Tensor) -> torch.Tensor:
+    """The regressor's inputs for a motion of ``body`` (what training and inference feed).
+
+    :func:`draping.gaps.pose_features` with the body's :data:`POSE_BONES` and the world up
+    direction (:func:`up_vector`).
+
+    Parameters
+    ----------
+    body : AnnyBody
+    rotations : (..., T, J, 3) float tensor
+        Axis-angle rotations of the body's bones (radians).
+    velocity : (..., T, 3) float tensor
+        Root velocity (m/s).
+    shape : (..., 6) float tensor
+        Phenotypes in ``[0, 1]``.
+
+    Returns
+    -------
+    (..., T, feature_size()) float tensor
+
+    Raises
+    ------
+    ValueError
+        A body without the bones of :data:`POSE_BONES`.
+    """
+    return pose_features(rotations, velocity, shape, pose_bone_indices(body), up_vector())
 
 
 def build_model(settings: GapsSettings, body: AnnyBody) -> tuple[GapsModel, Garment]:
@@ -259,8 +289,7 @@ def drape_motion(model: GapsModel, body: AnnyBody, motion: Motion, shape: Any = 
     with torch.no_grad():
         posed = body.pose(case.shape, rot, trans)
         c1 = time.process_time()
-        feats = pose_features(rot[None], vel[None], case.shape[None], pose_bone_indices(body),
-                              up_vector())
+        feats = motion_features(body, rot[None], vel[None], case.shape[None])
         disp, _ = model(feats)  # hidden state zero
         unposed = torch.as_tensor(case.garment.vertices, dtype=torch.float32) + disp[0]
         x = model.skin(unposed, posed.transforms.float())
@@ -290,7 +319,6 @@ def time_inference(model: GapsModel, body: AnnyBody, frames: int = 120, repeats:
     vel = m.velocity
     case = shape_case(model_garment(model), body, None)
     rest_v = torch.as_tensor(case.garment.vertices, dtype=torch.float32)
-    bones, up = pose_bone_indices(body), up_vector()
     _, joints = body.rest(case.shape)
     best = {"model": float("inf"), "with_skeleton": float("inf"),
             "with_body_mesh": float("inf")}
@@ -303,7 +331,7 @@ def time_inference(model: GapsModel, body: AnnyBody, frames: int = 120, repeats:
                                        joints.expand(frames, -1, -1), body.parents,
                                        m.translation, body.levels)
             c2 = time.process_time()
-            feats = pose_features(m.rotations[None], vel[None], case.shape[None], bones, up)
+            feats = motion_features(body, m.rotations[None], vel[None], case.shape[None])
             disp, _ = model(feats)
             model.skin(rest_v + disp[0], tr)
             c3 = time.process_time()

@@ -23,9 +23,9 @@ from draping.body import AnnyBody
 from draping.collision import MeshQuery
 
 from .data import ShapeCase, random_shapes, shape_case, training_sequences
-from .infer import build_model, pose_bone_indices, save_model, up_vector
+from .infer import build_model, motion_features, save_model
 from .losses import TERMS, body_contacts, loss_terms
-from .model import GapsModel, pose_features
+from .model import GapsModel
 from .settings import TrainSettings
 
 __all__ = ["TrainResult", "Trainer", "train", "STAGES"]
@@ -67,8 +67,6 @@ class Trainer:
         self.shapes = random_shapes(settings.shapes, settings.seed)
         self._cases: dict[int, ShapeCase] = {}
         self.sequences = training_sequences(settings, self.body)
-        self.bones = pose_bone_indices(self.body)
-        self.up = up_vector()
         self.query = MeshQuery(self.body.rest()[0][0].double(), self.body.faces)
         self.dt = 1.0 / 30.0
         self.step = 0
@@ -138,8 +136,8 @@ class Trainer:
                 h = h0[:, j:j + 1] if lo > 0 else torch.zeros_like(h0[:, j:j + 1])
                 if st > lo:
                     seq = self.sequences[k]
-                    f = pose_features(seq.rotations[lo:st][None], seq.velocity[lo:st][None],
-                                      shape[None], self.bones, self.up)
+                    f = motion_features(self.body, seq.rotations[lo:st][None],
+                                        seq.velocity[lo:st][None], shape[None])
                     h = self.model.state(f, h)
                 out.append(h)
         return torch.cat(out, dim=1)
@@ -161,7 +159,7 @@ class Trainer:
         gen = torch.Generator().manual_seed(int(s.seed) * 1_000_003 + int(step))
         h0 = s.hidden_std * torch.randn(m.settings.depth, b, m.settings.width, generator=gen)
         h0 = self.context(wins, case.shape, h0)
-        feats = pose_features(rot, vel, case.shape.expand(b, 6), self.bones, self.up)
+        feats = motion_features(self.body, rot, vel, case.shape.expand(b, 6))
         disp, _ = m(feats, h0)
         rest_v = case.rest.vertices.to(disp.dtype)
         x = m.skin((rest_v + disp).reshape(b * n_l, -1, 3), posed.transforms)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -16,9 +17,11 @@ from draping.gaps import (
     TrainSettings,
     body_contacts,
     check_phenotypes,
+    drape_motion,
     drape_sequence,
     load_model,
     loss_terms,
+    motion_features,
     pose_features,
     save_model,
     top_weights,
@@ -155,6 +158,32 @@ def test_pose_features_ignore_heading(body):
     torch.testing.assert_close(f0, f1, atol=1e-5, rtol=1e-5)
 
 
+def test_motion_features_feed_inference(body, trainer):
+    """One helper builds the inputs (the body's POSE_BONES and the world up, bit for bit) and
+    inference drapes with exactly them (training's states: the burn-in test below)."""
+    m = generate("random", body, 5, seed=2)
+    shape = torch.full((6,), 0.4)
+    f = motion_features(body, m.rotations[None], m.velocity[None], shape[None])
+    ref = pose_features(m.rotations[None], m.velocity[None], shape[None],
+                        pose_bone_indices(body), up_vector())
+    assert torch.equal(f, ref)
+    with pytest.raises(ValueError, match="body"):
+        motion_features(SimpleNamespace(bone_names=("root",)), m.rotations, m.velocity, shape)
+    model = trainer.model
+    torch.manual_seed(1)
+    torch.nn.init.normal_(model.basis.weight, std=0.1)
+    try:
+        d = drape_motion(model, body, m, shape)
+        with torch.no_grad():
+            disp, _ = model(f)
+            rest = torch.as_tensor(d.case.garment.vertices, dtype=torch.float32)
+            posed = body.pose(d.case.shape, m.rotations, m.translation)
+            x = model.skin(rest + disp[0], posed.transforms)
+        assert torch.equal(d.x, x)
+    finally:
+        torch.nn.init.zeros_(model.basis.weight)
+
+
 def test_top_weights_renormalised():
     w = torch.tensor([[0.5, 0.3, 0.2, 0.0], [0.1, 0.1, 0.1, 0.7]])
     wk, ik = top_weights(w, 2)
@@ -287,7 +316,7 @@ def test_burn_in_gives_the_inference_state(trainer):
     m = tr.model
     k, seq = 0, tr.sequences[0]
     shape = tr.case(0).shape
-    feats = pose_features(seq.rotations[None], seq.velocity[None], shape[None], tr.bones, tr.up)
+    feats = motion_features(tr.body, seq.rotations[None], seq.velocity[None], shape[None])
     gen = torch.Generator().manual_seed(4)
     h0 = torch.randn(m.settings.depth, 3, m.settings.width, generator=gen)
     wins = [(k, 0), (k, 5), (k, 9)]
