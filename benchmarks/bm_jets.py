@@ -29,11 +29,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing as mp
 import os
 import platform
 import sys
-import tempfile
 import time
 import traceback
 from pathlib import Path
@@ -41,6 +39,15 @@ from pathlib import Path
 import numpy as np
 
 os.environ.setdefault("MPLBACKEND", "Agg")
+
+from bm_jets_peers import (  # noqa: E402  (after the backend choice)
+    PEERS,
+    available_peers,
+    isolated,
+    numpy_baseline,
+    start_forkserver,
+)
+from bm_jets_robust import classify, print_robustness, run_robustness  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -165,399 +172,6 @@ def polygeo_stages(P, k, order, repeats=3):
     return float(np.median(t_knn)), float(np.median(t_stage)), float(np.median(t_fit))
 
 
-def numpy_baseline(P, k, order=2):
-    """Plain vectorised NumPy jet fit (cKDTree, batched eigh, normal equations)."""
-    from scipy.spatial import cKDTree
-
-    t0 = time.perf_counter()
-    c0 = time.process_time()
-    _, idx = cKDTree(P).query(P, k, workers=-1)
-    t1 = time.perf_counter()
-    X = P[idx] - P[:, None, :]
-    C = X - X.mean(1, keepdims=True)
-    cov = np.einsum("qki,qkj->qij", C, C)
-    _, vec = np.linalg.eigh(cov)
-    e1, e3 = vec[:, :, 2], vec[:, :, 0]
-    e2 = np.cross(e3, e1)
-    R = np.stack([e1, e2, e3], -1)
-    uvz = np.einsum("qki,qij->qkj", X, R)
-    u, v, z = uvz[..., 0], uvz[..., 1], uvz[..., 2]
-    h = np.sqrt((u**2 + v**2).max(1))[:, None]
-    us, vs = u / h, v / h
-    cols, degs = [], []
-    for d in range(order + 1):
-        for j in range(d + 1):
-            cols.append(us ** (d - j) * vs**j)
-            degs.append(d)
-    A = np.stack(cols, -1)
-    ata = np.einsum("qkm,qkn->qmn", A, A)
-    atb = np.einsum("qkm,qk->qm", A, z)
-    coef = np.linalg.solve(ata, atb[..., None])[..., 0] / h ** np.array(degs)[None, :]
-    a10, a01 = coef[:, 1], coef[:, 2]
-    a20, a11, a02 = (coef[:, 3], coef[:, 4], coef[:, 5]) if order >= 2 else (0 * a10,) * 3
-    w = np.sqrt(1 + a10**2 + a01**2)
-    n_loc = np.stack([-a10, -a01, np.ones_like(a10)], -1) / w[:, None]
-    E_, F_, G_ = 1 + a10**2, a10 * a01, 1 + a01**2
-    L, M, N = 2 * a20 / w, a11 / w, 2 * a02 / w
-    det = E_ * G_ - F_**2
-    H = (E_ * N - 2 * F_ * M + G_ * L) / (2 * det)
-    K = (L * N - M**2) / det
-    normals = np.einsum("qij,qj->qi", R, n_loc)
-    t2 = time.perf_counter()
-    return {"normals": normals, "H": H, "K": K, "t_knn": t1 - t0, "t_total": t2 - t0,
-            "cpu_s": time.process_time() - c0}
-
-
-def peer_cgal(P, F, k, degree=2):
-    from CGAL.CGAL_Kernel import Point_3
-    from CGAL.CGAL_Point_set_3 import Point_set_3
-    from CGAL.CGAL_Point_set_processing_3 import jet_estimate_normals
-
-    from polygeo.io import read_points
-
-    with tempfile.TemporaryDirectory() as d:
-        ps = Point_set_3()
-        for x, y, z in P.tolist():
-            ps.insert(Point_3(x, y, z))
-        ps.add_normal_map()
-        t = time.perf_counter()
-        c = time.process_time()
-        jet_estimate_normals(ps, int(k), degree_fitting=int(degree))
-        dt = time.perf_counter() - t
-        cpu = time.process_time() - c
-        dst = os.path.join(d, "out.ply")
-        ps.write(dst)
-        back = read_points(dst)
-    if back.points.shape != P.shape or not np.allclose(back.points, P, equal_nan=True):
-        raise RuntimeError("CGAL reordered or dropped points")
-    return {"normals": back.normals, "t_total": dt, "cpu_s": cpu}
-
-
-def peer_open3d(P, F, k):
-    import open3d as o3d
-
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
-    t = time.perf_counter()
-    pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(int(k)))
-    dt = time.perf_counter() - t
-    return {"normals": np.asarray(pc.normals).copy(), "t_total": dt}
-
-
-def peer_igl(P, F, k, rings=2):
-    import igl
-
-    t = time.perf_counter()
-    V = np.ascontiguousarray(P, dtype=np.float64)
-    Fi = np.ascontiguousarray(F, dtype=np.int64)
-    pd1, pd2, pv1, pv2, *_ = igl.principal_curvature(V, Fi, int(rings), True)
-    normals = igl.per_vertex_normals(V, Fi)
-    dt = time.perf_counter() - t
-    # libigl: positive on a sphere with outward faces; polygeo: negative (bends away from n)
-    k1, k2 = -np.asarray(pv2), -np.asarray(pv1)
-    return {"normals": normals, "H": 0.5 * (k1 + k2), "K": k1 * k2, "t_total": dt}
-
-
-def peer_pyvista(P, F, k):
-    import pyvista as pv
-
-    poly = pv.PolyData(P, np.c_[np.full(len(F), 3), F].ravel())
-    t = time.perf_counter()
-    H = -np.asarray(poly.curvature("mean"))  # pyvista: positive on a convex outward surface
-    K = np.asarray(poly.curvature("gaussian"))
-    normals = np.asarray(poly.compute_normals(auto_orient_normals=False).point_normals)
-    dt = time.perf_counter() - t
-    return {"normals": normals, "H": H, "K": K, "t_total": dt}
-
-
-def peer_trimesh(P, F, k, n_query=2000, seed=0):
-    import trimesh
-    from scipy.spatial import cKDTree
-
-    m = trimesh.Trimesh(P, F, process=False)
-    rng = np.random.default_rng(seed)
-    sel = np.sort(rng.choice(len(P), size=min(n_query, len(P)), replace=False))
-    # ball radius: median distance to the k-th neighbour (same support as a k-NN fit)
-    r = float(np.median(cKDTree(P).query(P[sel], int(k))[0][:, -1]))
-    t = time.perf_counter()
-    hm = trimesh.curvature.discrete_mean_curvature_measure(m, P[sel], r)
-    km = trimesh.curvature.discrete_gaussian_curvature_measure(m, P[sel], r)
-    normals = np.asarray(m.vertex_normals)
-    dt = time.perf_counter() - t
-    area = trimesh.curvature.sphere_ball_intersection(1.0, r) if r < 1 else np.pi * r * r
-    H = np.full(len(P), np.nan)
-    K = np.full(len(P), np.nan)
-    H[sel] = -hm / area
-    K[sel] = km / area
-    return {"normals": normals, "H": H, "K": K, "t_total": dt, "sel": sel, "radius": r}
-
-
-PEERS = {
-    "cgal_jet_normals": peer_cgal,
-    "open3d_pca_normals": peer_open3d,
-    "libigl_principal_curvature": peer_igl,
-    "pyvista_curvature": peer_pyvista,
-    "trimesh_curvature_measure": peer_trimesh,
-}
-PEER_MODULES = {
-    "cgal_jet_normals": "CGAL",
-    "open3d_pca_normals": "open3d",
-    "libigl_principal_curvature": "igl",
-    "pyvista_curvature": "pyvista",
-    "trimesh_curvature_measure": "trimesh",
-}
-
-
-def _child(conn, fn, args, kwargs):
-    try:
-        conn.send(("ok", fn(*args, **kwargs)))
-    except BaseException as exc:  # report any exception as data
-        conn.send(("error", f"{type(exc).__name__}: {exc}"))
-    finally:
-        conn.close()
-
-
-_CTX = None
-
-
-def start_forkserver() -> None:
-    """Start the fork server before any OpenMP runtime is used in this process.
-
-    Peers run in children forked from that clean server: forking this process after numba or
-    torch started OpenMP threads is unsafe (libgomp aborts the child), and a peer that
-    segfaults must not end the benchmark.
-    """
-    global _CTX
-    import importlib.util
-
-    ctx = mp.get_context("forkserver")
-    mods = ["numpy", "scipy.spatial", "polygeo.io"]
-    mods += [m for m in ("CGAL", "open3d", "igl", "pyvista", "trimesh")
-             if importlib.util.find_spec(m) is not None]
-    main_mod = sys.modules.get("__main__")
-    if main_mod is not None and getattr(main_mod, "__file__", None):
-        mods = ["__main__", *mods]
-    ctx.set_forkserver_preload(mods)
-    _CTX = ctx
-
-
-def isolated(fn, *args, timeout=300.0, **kwargs):
-    """Run ``fn`` in a child process; return ('ok', result) / ('error', msg) / ('crash', msg)."""
-    if _CTX is None:
-        start_forkserver()
-    ctx = _CTX
-    a, b = ctx.Pipe(duplex=False)
-    p = ctx.Process(target=_child, args=(b, fn, args, kwargs))
-    p.start()
-    b.close()
-    result = None
-    if a.poll(timeout):
-        try:
-            result = a.recv()
-        except EOFError:
-            result = None
-    p.join(5)
-    if p.is_alive():
-        p.kill()
-        p.join()
-        return ("crash", f"hang (> {timeout:.0f} s)")
-    if result is None:
-        return ("crash", f"process died with exit code {p.exitcode}")
-    return result
-
-
-def available_peers() -> dict:
-    import importlib.util
-
-    out = {}
-    for name, mod in PEER_MODULES.items():
-        out[name] = importlib.util.find_spec(mod) is not None
-    return out
-
-
-# ------------------------------------------------------------------------------ robustness
-
-
-def robustness_cases(seed=0):
-    """The issue's failure cases, each with the clean input it should behave like.
-
-    Every case has ``points``/``faces``/``k`` (the broken input), ``clean`` (points, faces)
-    whose result it is compared with, ``map`` (row of the clean result for each point),
-    ``skip`` (points not assessed: a fin vertex, stray unreferenced vertices) and ``nan``
-    (points whose input is NaN: a finite, unflagged answer there is silently wrong).
-    """
-    from polygeo import synthetic as sy
-
-    rng = np.random.default_rng(seed)
-    s = sy.sphere(4000, seed=seed)
-    n = len(s.points)
-    none = np.zeros(n, bool)
-    cloud = dict(clean=(s.points, None), map=np.arange(n), skip=none, nan=none, k=20)
-    cases = {}
-    # scan lines: latitude rings of 400 points; most 20-neighbourhoods lie on one ring. There
-    # is no clean equivalent: compare with the analytic sphere (normals radial, H = -1).
-    th = np.linspace(0.3, np.pi - 0.3, 20)
-    ph = np.linspace(0, 2 * np.pi, 400, endpoint=False)
-    t, p = np.meshgrid(th, ph, indexing="ij")
-    rp = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1).reshape(-1, 3)
-    cases["scan_lines"] = dict(points=rp, faces=None, k=20, clean=None, truth_normals=rp,
-                               truth_H=-np.ones(len(rp)), map=np.arange(len(rp)),
-                               skip=np.zeros(len(rp), bool), nan=np.zeros(len(rp), bool))
-    cases["points_repeated_10x"] = dict(cloud, points=np.repeat(s.points, 10, axis=0),
-                                        faces=None, map=np.repeat(np.arange(n), 10),
-                                        skip=np.zeros(10 * n, bool), nan=np.zeros(10 * n, bool))
-    nan_last = np.r_[none, True]
-    cases["one_nan_point"] = dict(cloud, points=np.vstack([s.points, [[np.nan] * 3]]),
-                                  faces=None, map=np.r_[np.arange(n), 0], skip=nan_last,
-                                  nan=nan_last)
-    cases["shift_1e8"] = dict(cloud, points=s.points + 1e8, faces=None)
-    cases["k_below_n_coeffs"] = dict(cloud, points=s.points, faces=None, k=4)
-    m = sy.torus_mesh(100)
-    nv = len(m.points)
-    vnone = np.zeros(nv, bool)
-    mesh = dict(clean=(m.points, m.faces), map=np.arange(nv), skip=vnone, nan=vnone, k=20)
-    v = m.points.copy()
-    v[5] = np.nan
-    nan5 = vnone.copy()
-    nan5[5] = True
-    cases["mesh_nan_vertex"] = dict(mesh, points=v, faces=m.faces, skip=nan5, nan=nan5)
-    e = m.faces[0]
-    vf = np.vstack([m.points, m.points[e[0]] + 0.05 * m.normals[e[0]]])
-    ff = np.vstack([m.faces, [[e[0], e[1], nv]]])
-    cases["mesh_nonmanifold_fin"] = dict(mesh, points=vf, faces=ff, map=np.r_[np.arange(nv), 0],
-                                         skip=np.r_[vnone, True], nan=np.r_[vnone, False])
-    sv = m.points[m.faces].reshape(-1, 3)
-    ns = len(sv)
-    cases["mesh_unwelded_soup"] = dict(mesh, points=sv, faces=np.arange(ns).reshape(-1, 3),
-                                       map=m.faces.reshape(-1), skip=np.zeros(ns, bool),
-                                       nan=np.zeros(ns, bool))
-    fl = m.faces.copy()
-    flip = rng.random(len(fl)) < 0.5
-    fl[flip] = fl[flip][:, ::-1]
-    cases["mesh_half_faces_flipped"] = dict(mesh, points=m.points, faces=fl)
-    vu = np.vstack([m.points, rng.normal(size=(50, 3)) * 0.001 + m.points[:50]])
-    cases["mesh_unreferenced_vertices"] = dict(
-        mesh, points=vu, faces=m.faces, map=np.r_[np.arange(nv), np.arange(50)],
-        skip=np.r_[vnone, np.ones(50, bool)], nan=np.r_[vnone, np.zeros(50, bool)],
-    )
-    return cases
-
-
-#: Methods whose normals (and curvature signs) carry an orientation.
-ORIENTED = {"polygeo", "libigl_principal_curvature", "pyvista_curvature",
-            "trimesh_curvature_measure"}
-
-
-def classify(case, method, kind, res, ref, tol_deg=5.0, tol_h=0.2):
-    """Outcome of a method on a broken input, against its own result on the clean input.
-
-    ok: every assessed point agrees with the clean run (normals within ``tol_deg``, H within
-    ``tol_h`` relative, same sign for oriented methods) and NaN inputs give NaN or a flag;
-    reported: same, with the disagreeing points flagged by a status; error: a clear
-    exception; crash: the process died or hung; silent_wrong: otherwise.
-    """
-    if kind == "crash":
-        return {"outcome": "crash", "detail": str(res)[:200]}
-    if kind == "error":
-        return {"outcome": "error", "detail": str(res)[:200]}
-    mp_ = case["map"]
-    sel = res.get("sel")
-    rows = np.arange(len(mp_)) if sel is None else sel
-    status = res.get("status")
-    flagged = np.zeros(len(mp_), bool) if status is None else np.asarray(status) != 0
-    assess = ~case["skip"] & ~flagged
-    wrong = np.zeros(len(mp_), bool)
-    oriented = method in ORIENTED
-    n = res.get("normals")
-    if n is not None:
-        n = np.asarray(n, dtype=np.float64)
-        nref = ref["normals"][mp_] if ref is not None else case["truth_normals"]
-        good = np.isfinite(n).all(1) & (np.linalg.norm(n, axis=1) > 1e-12)
-        nn = n / np.where(good, np.linalg.norm(n, axis=1), 1)[:, None]
-        nr = nref / np.maximum(np.linalg.norm(nref, axis=1), 1e-300)[:, None]
-        d = np.einsum("ij,ij->i", np.where(good[:, None], nn, 0), np.nan_to_num(nr))
-        d = d if (oriented and ref is not None) else np.abs(d)
-        ang = np.degrees(np.arccos(np.clip(d, -1, 1)))
-        wrong |= ~good | (ang > tol_deg)
-    H = res.get("H")
-    if H is not None:
-        h = np.asarray(H, dtype=np.float64)
-        href = ref["H"][mp_] if ref is not None else case["truth_H"]
-        if ref is None or not oriented:
-            h, href = np.abs(h), np.abs(href)
-        rel = np.abs(h - href) / np.maximum(np.abs(href), 1e-12)
-        wrong |= ~np.isfinite(h) | (rel > tol_h)
-    wrong_rows = wrong[rows] & assess[rows]
-    nan_in = case["nan"][rows]
-    silent_nan = 0
-    if nan_in.any():
-        out_finite = np.ones(len(mp_), bool)
-        if n is not None:
-            out_finite &= np.isfinite(n).all(1)
-        if H is not None:
-            out_finite &= np.isfinite(np.asarray(H, dtype=np.float64))
-        silent_nan = int((nan_in & out_finite[rows] & ~flagged[rows]).sum())
-    detail = dict(assessed=int(assess[rows].sum()), disagree=int(wrong_rows.sum()),
-                  flagged=int(flagged.sum()), nan_input_answered_silently=silent_nan)
-    if wrong_rows.sum() > 0.01 * max(assess[rows].sum(), 1) or silent_nan:
-        outcome = "silent_wrong"
-    elif flagged.any():
-        outcome = "reported"
-    else:
-        outcome = "ok"
-    return {"outcome": outcome, **detail}
-
-
-def _polygeo_payload(P, F, k):
-    from polygeo.estimate import differential_quantities
-
-    r = differential_quantities(P, F, k=k, order=2, progress=False)
-    return {"normals": r.normals, "H": r.mean_curvature, "status": r.status}
-
-
-def _numpy_payload(P, F, k):
-    return numpy_baseline(P, k, 2)
-
-
-def run_robustness(timeout=180.0):
-    cases = robustness_cases()
-    peers = available_peers()
-    methods = {"polygeo": _polygeo_payload, "numpy_jets": _numpy_payload}
-    methods.update({p: PEERS[p] for p, ok in peers.items() if ok})
-    mesh_only = {"libigl_principal_curvature", "pyvista_curvature", "trimesh_curvature_measure"}
-    table = {}
-    clean_cache: dict = {}
-    for name, case in cases.items():
-        row = {}
-        for method, fn in methods.items():
-            if method in mesh_only and case["faces"] is None:
-                row[method] = {"outcome": "n/a (needs a mesh)"}
-                continue
-            ref = None
-            if case["clean"] is not None:
-                key = (method, id(case["clean"][0]))
-                if key not in clean_cache:
-                    cp, cf = case["clean"]
-                    if method == "polygeo":
-                        clean_cache[key] = ("ok", fn(cp, cf, 20))
-                    else:
-                        clean_cache[key] = isolated(fn, cp, cf, 20, timeout=timeout)
-                ck, ref = clean_cache[key]
-                if ck != "ok":
-                    row[method] = {"outcome": "clean run failed", "detail": str(ref)[:200]}
-                    continue
-            if method == "polygeo":  # ours runs in-process (it must not crash)
-                try:
-                    kind, res = "ok", fn(case["points"], case["faces"], case["k"])
-                except (ValueError, TypeError) as exc:
-                    kind, res = "error", f"{type(exc).__name__}: {exc}"
-            else:
-                kind, res = isolated(fn, case["points"], case["faces"], case["k"],
-                                     timeout=timeout)
-            row[method] = classify(case, method, kind, res, ref)
-        table[name] = row
-    return table
-
-
 # ------------------------------------------------------------------------------ main
 
 
@@ -678,7 +292,7 @@ def main(argv=None) -> int:
     if "robustness" in sections:
         record["robustness"] = run_robustness()
         record["robustness_legend"] = classify.__doc__
-        _print_robustness(record["robustness"])
+        print_robustness(record["robustness"])
     record["load_average_end"] = list(os.getloadavg())
     path = out_dir / "bm_jets.json"
     if path.exists() and sections != {"speed", "accuracy", "parsimony", "robustness"}:
@@ -992,15 +606,6 @@ def _print_speed(speed):
             print(f"  {peer:<48} {v['pipeline_pts_per_s']:>12,.0f}  "
                   f"normal mean {v.get('normal_mean_deg', float('nan')):.4f} deg")
     print(f"  polygeo normal mean {pg['normal_mean_deg']:.4f} deg; ratios {speed['ratios']}")
-
-
-def _print_robustness(table):
-    methods = sorted({m for row in table.values() for m in row})
-    print("robustness:")
-    print("  " + "case".ljust(28) + "".join(m[:14].ljust(16) for m in methods))
-    for case, row in table.items():
-        print("  " + case.ljust(28) + "".join(
-            str(row.get(m, {}).get("outcome", "-"))[:14].ljust(16) for m in methods))
 
 
 if __name__ == "__main__":
