@@ -104,31 +104,6 @@ _MIN_DOF = 3
 _ATTEN_MAX = 10.0
 #: Power of the neighbourhood radius of the leading bias, per order: slopes (normal), H.
 _BIAS_POWER = {"normal": {1: 2, 2: 2, 3: 4, 4: 4}, "H": {1: 2, 2: 2, 3: 2, 4: 4}}
-#: Whether the plane's normal error is modelled by its alias (:func:`plane_alias`; False: by
-#: its residual variance and drift like the other orders, the rule before; for ablations).
-_PLANE_ALIAS = True
-#: Whether the normal's squared bias is at least its measured drift from the narrowest
-#: well-determined size of its order (:func:`measured_drift`; False: the modelled drift
-#: alone, the rule before; for ablations).
-_MEASURED_DRIFT = True
-#: Whether, for the normal's variance, a fit with few degrees of freedom claims no less
-#: residual variance than its order's truncation scaling allows (:func:`_weak_floor`;
-#: False: its own, the rule before). Not for the curvatures: clean data need an order-4
-#: jet on 21 points, whose H the floor would cost (clean torus H 1.39 -> 1.63x the best).
-_WEAK_FLOOR = True
-#: Whether a setting's pooled error counts the neighbours that cannot fit it as infinite
-#: (False: they are left out of the median, the rule before; for ablations).
-_UNDEFINED_INF = True
-#: Whether the variances use the noise variance pooled (median) over the point's neighbours
-#: (False: the point's own, the rule before; for ablations).
-_POOL_NOISE = True
-#: Whether the normal's noise variance (curved orders) is the residual variance of the fits up
-#: to the narrowest with ``_MIN_DOF`` degrees of freedom per coefficient (:func:`_normal_noise`;
-#: False: the mean over all sizes the ICI accepts, the rule before; for ablations). It sets
-#: the slopes' variances and the variance subtracted from their measured drift.
-_NOISE_NARROWEST = True
-
-
 def candidate_sizes(hoods: Neighbourhoods, settings: Settings) -> np.ndarray:
     """Sizes tried (points per neighbourhood, the point itself included), capped by the data."""
     return np.array(sorted({min(c, hoods.k_query) for c in settings.sizes}), dtype=np.int64)
@@ -219,18 +194,20 @@ def _normal_noise(val, gvar, rss, dof, ok, oi, o, sizes, s2) -> np.ndarray:
     order-4 fit's residual variance grows 1.46x from 21 to 65 points, 1.12x on i.i.d. noise
     on a sphere), and an overstated noise makes a narrow fit's normal look noisier than it
     is and a wide fit's drift smaller (its variance is subtracted from the measured drift,
-    :func:`measured_drift`). With ``_NOISE_NARROWEST`` only the fits up to the narrowest
-    with ``_MIN_DOF`` degrees of freedom per coefficient count: the least truncation
+    :func:`measured_drift`). So only the fits up to the narrowest with ``_MIN_DOF``
+    degrees of freedom per coefficient count: the least truncation
     among the well-determined fits. On i.i.d. noise this costs little precision: nested
     fits share their points, so their residual variances are strongly correlated and their
     mean is hardly less variable than the narrowest one; it is pooled (median) over the
-    neighbours besides (:func:`point_mse`). With ``_WEAK_FLOOR``, fits below that size
-    claim no less than their truncation scaling allows (:func:`_weak_floor`).
+    neighbours besides (:func:`point_mse`). Fits below that size claim no less than their
+    truncation scaling allows (:func:`_weak_floor`). Not for the curvatures: clean data
+    need an order-4 jet on 21 points, whose H the floor would cost (measured: clean torus
+    H 1.39 -> 1.63x the best).
     """
-    if not (_WEAK_FLOOR or _NOISE_NARROWEST) or o < 2:
+    if o < 2:
         return s2
-    floor = _weak_floor(rss, dof, ok, oi, o, sizes) if _WEAK_FLOOR else None
-    return _ici(val, gvar, rss, dof, ok, oi, jets.n_coeffs(o), floor, _NOISE_NARROWEST)[1]
+    floor = _weak_floor(rss, dof, ok, oi, o, sizes)
+    return _ici(val, gvar, rss, dof, ok, oi, jets.n_coeffs(o), floor, True)[1]
 
 
 def bias_rate(y, v, ok, t, u=None):
@@ -320,7 +297,7 @@ def point_statistics(hoods: Neighbourhoods, q, nbr, dist, *, orders, sizes,
     n_rel = sizes.astype(np.float64) / float(sizes[0])
     r2 = _mean_sq_distance(dist, sizes)
     ici = [_ici(val, gvar, rss, dof, ok, oi, jets.n_coeffs(o)) for oi, o in enumerate(orders)]
-    plane = _PLANE_ALIAS and orders[0] == 1 and O > 1
+    plane = orders[0] == 1 and O > 1
     for oi, o in enumerate(orders):
         chosen, s2 = ici[oi]
         if plane and o == 1:
@@ -334,8 +311,7 @@ def point_statistics(hoods: Neighbourhoods, q, nbr, dist, *, orders, sizes,
         s2n = _normal_noise(val, gvar, rss, dof, ok, oi, o, sizes, s2) if o >= 2 else s2
         s2no[:, oi] = s2n
         v = s2[:, None, None] * gvar[:, oi]  # (Q, S, 3)
-        if _NOISE_NARROWEST:  # the slopes' variances: the normal's noise
-            v[..., :2] = s2n[:, None, None] * gvar[:, oi, :, :2]
+        v[..., :2] = s2n[:, None, None] * gvar[:, oi, :, :2]  # the slopes: the normal's noise
         v3[:, oi] = np.where(okc[..., None], v, np.inf)
         var[:, oi, :, 0] = np.where(okc, s2n[:, None] * (gvar[:, oi, :, 0] + gvar[:, oi, :, 1]),
                                     np.inf)
@@ -351,9 +327,7 @@ def point_statistics(hoods: Neighbourhoods, q, nbr, dist, *, orders, sizes,
         last = np.where(okc, np.arange(S)[None, :], -1).max(1)
         H[:, oi] = np.where(last >= 0, val[np.arange(Q), oi, np.maximum(last, 0), 2], np.nan)
     out = dict(size=size, var=var, B=B, varB=varB, BC=BC, covBC=covBC, u=u, H=H, s2=s2o,
-               s2n=s2no)
-    if _MEASURED_DRIFT:
-        out["drift"] = measured_drift(val, v3, ok, dof, orders)
+               s2n=s2no, drift=measured_drift(val, v3, ok, dof, orders))
     if plane:
         s2c = np.stack([ici[oi][1] for oi in range(1, O)], 1)  # curved orders' noise
         s2c = np.where(s2c > 0, s2c, np.inf).min(1)
@@ -518,22 +492,19 @@ def point_mse(stats: dict, rows: np.ndarray, pool: np.ndarray, sizes: np.ndarray
     BCp = np.nan_to_num(BCp, nan=0.0)
     n_rel = sizes.astype(np.float64) / float(sizes[0])
     mse = np.array(stats["var"][rows], dtype=np.float64, copy=True)
-    if _POOL_NOISE:
-        # the noise variance pooled like the rest: one point's residual on few degrees of
-        # freedom can be small by chance, and its variance with it
-        nkey = "s2n" if _NOISE_NARROWEST else "s2"
-        f = np.stack([_pool_factor(stats[key], rows, pool) for key in (nkey, "s2")], -1)
-        f = f[:, :, None, :]  # (Q, O, 1, 2): the normal's and H's noise
-        with np.errstate(invalid="ignore"):  # both branches are evaluated: inf * 0 where
-            mse = np.where(np.isfinite(mse), mse * f, mse)  # mse is inf is not taken
+    # the noise variance pooled like the rest: one point's residual on few degrees of
+    # freedom can be small by chance, and its variance with it
+    f = np.stack([_pool_factor(stats[key], rows, pool) for key in ("s2n", "s2")], -1)
+    f = f[:, :, None, :]  # (Q, O, 1, 2): the normal's and H's noise
+    with np.errstate(invalid="ignore"):  # both branches are evaluated: inf * 0 where
+        mse = np.where(np.isfinite(mse), mse * f, mse)  # mse is inf is not taken
     plane = "alias" in stats
     if plane:
         alias = _pooled_median(stats["alias"], pool)  # (Q, S)
         tang = np.nan_to_num(_pooled_median(stats["tangential"], pool), nan=0.0)  # (Q,)
         follow = np.nan_to_num(_pooled_median(stats["follow"], pool), nan=1.0)  # (Q, S)
-    meas = None
-    if "drift" in stats:  # pooled like the rest, then clamped: an unbiased b^2 estimate
-        meas = np.maximum(np.nan_to_num(_pooled_median(stats["drift"], pool), nan=0.0), 0.0)
+    # the measured drift, pooled like the rest, then clamped: an unbiased b^2 estimate
+    meas = np.maximum(np.nan_to_num(_pooled_median(stats["drift"], pool), nan=0.0), 0.0)
     for oi, o in enumerate(orders):
         t2n = n_rel ** _BIAS_POWER["normal"][o]
         t2h = n_rel ** _BIAS_POWER["H"][o]
@@ -544,8 +515,7 @@ def point_mse(stats: dict, rows: np.ndarray, pool: np.ndarray, sizes: np.ndarray
                              drift)
         elif plane:  # a curved jet: its normal moves with the query's own tangential noise
             drift = drift + tang[:, None]
-        if meas is not None:
-            drift = np.maximum(drift, meas[:, oi])
+        drift = np.maximum(drift, meas[:, oi])
         mse[:, oi, :, 0] += drift
         # H: b_s = B t_s + C u_s and its variance, where the attenuation term applies
         t, uu = np.sqrt(t2h)[None, :], np.nan_to_num(stats["u"][rows, oi], nan=0.0)
@@ -571,8 +541,8 @@ def choose(stats: dict, table: np.ndarray, pool: np.ndarray, sizes: np.ndarray,
     Q = pool.shape[0]
     O, S = table.shape[0], table.shape[1]
     flat_table = table.reshape(O * S * 2, -1)
-    if _UNDEFINED_INF:  # a setting a neighbour cannot fit counts as an infinite error there
-        flat_table = np.where(np.isnan(flat_table), np.inf, flat_table)
+    # a setting a neighbour cannot fit counts as an infinite error there
+    flat_table = np.where(np.isnan(flat_table), np.inf, flat_table)
     m = _pooled_median_t(flat_table, pool)  # (O * S * 2, Q)
     m = np.moveaxis(m.reshape(O, S, 2, Q), -1, 0)
     m = np.where(np.isnan(m), np.inf, m)
