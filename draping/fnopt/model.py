@@ -271,7 +271,7 @@ def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
         hd = p.hessian_products(base + [f], hvp)
     dirs = base + [f]
     k = len(base)
-    (c, m), (c2, m2) = subspace_solve(g, dirs, hd, sub=k)
+    (c, m), (c2, m2) = subspace_solve(g, dirs, hd, sub=k, fused=p.fused and not create_graph)
     d = torch.stack(dirs, 1)
     da = torch.einsum("bi,bihwc->bhwc", c.to(g.dtype), d)
     da_pcg = torch.einsum("bi,bihwc->bhwc", c2[:, :k].detach().to(g.dtype), d[:, :k].detach())

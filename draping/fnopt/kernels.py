@@ -1,0 +1,224 @@
+"""Fused CPU kernels (numba) of FNOpt's inference loop: Hessian products and the subspace Gram.
+
+:func:`draping.fnopt.cloth.loss_hvp` builds ``H d`` from a few dozen tensor operations over
+``(K, B, H, W, 3)`` arrays; each reads and writes the whole field, so at 64x64 / 100x100 five
+products cost ~1.6 / ~3.6 ms, more than the FNO's forward. :func:`loss_hvp_fused` computes the
+same products (the same quadrature, term by term) in one pass per direction, accumulating in
+float64, and :func:`gram_fused` the subspace step's ``D^T H D`` and ``g^T D`` in one pass over
+the fields without float64 copies of them. Both are for inference: they are not differentiable
+(training keeps the torch functions, so ``polygeo train-fnopt`` is unchanged). The torch
+functions stay the reference; the tests compare with them (float64: to rounding).
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+import torch
+
+from .cloth import positions_from_accel
+
+__all__ = ["loss_hvp_fused", "gram_fused"]
+
+
+@nb.njit(cache=True)
+def _hvp(d, x, mass, bx, by, ks, ksh, kb, damp, wr, wc, ir, ic, dt, out):
+    """``out[k, b] = H_b d[k, b]``; see :func:`loss_hvp_fused`."""
+    n_dir, n_b, h, w, _ = d.shape
+    dt2 = dt * dt
+    xu = np.empty((h, w - 1, 3))
+    xv = np.empty((h - 1, w, 3))
+    du = np.empty((h, w - 1, 3))
+    dv = np.empty((h - 1, w, 3))
+    qu = np.empty((h, w - 1, 3))
+    qv = np.empty((h - 1, w, 3))
+    su = np.empty((h, w - 1))
+    sv = np.empty((h - 1, w))
+    for b in range(n_b):
+        ibx, iby = 1.0 / bx[b], 1.0 / by[b]
+        for i in range(h):
+            for j in range(w - 1):
+                s = 0.0
+                for c in range(3):
+                    t = (np.float64(x[b, i, j + 1, c]) - np.float64(x[b, i, j, c])) * ibx
+                    xu[i, j, c] = t
+                    s += t * t
+                su[i, j] = 0.5 * (s - 1.0)
+        for i in range(h - 1):
+            for j in range(w):
+                s = 0.0
+                for c in range(3):
+                    t = (np.float64(x[b, i + 1, j, c]) - np.float64(x[b, i, j, c])) * iby
+                    xv[i, j, c] = t
+                    s += t * t
+                sv[i, j] = 0.5 * (s - 1.0)
+        for k in range(n_dir):
+            for i in range(h):                                  # stretch along u
+                for j in range(w - 1):
+                    p = 0.0
+                    for c in range(3):
+                        t = dt2 * (np.float64(d[k, b, i, j + 1, c])
+                                   - np.float64(d[k, b, i, j, c])) * ibx
+                        du[i, j, c] = t
+                        p += xu[i, j, c] * t
+                    f = ks[b] * wr[i]
+                    for c in range(3):
+                        qu[i, j, c] = f * (su[i, j] * du[i, j, c] + p * xu[i, j, c])
+            for i in range(h - 1):                              # stretch along v
+                for j in range(w):
+                    p = 0.0
+                    for c in range(3):
+                        t = dt2 * (np.float64(d[k, b, i + 1, j, c])
+                                   - np.float64(d[k, b, i, j, c])) * iby
+                        dv[i, j, c] = t
+                        p += xv[i, j, c] * t
+                    f = ks[b] * wc[j]
+                    for c in range(3):
+                        qv[i, j, c] = f * (sv[i, j] * dv[i, j, c] + p * xv[i, j, c])
+            for i in range(h - 1):                              # shear, per cell
+                for j in range(w - 1):
+                    cc = 0.0
+                    dc = 0.0
+                    for c in range(3):
+                        fu = 0.5 * (xu[i + 1, j, c] + xu[i, j, c])
+                        fv = 0.5 * (xv[i, j + 1, c] + xv[i, j, c])
+                        dfu = 0.5 * (du[i + 1, j, c] + du[i, j, c])
+                        dfv = 0.5 * (dv[i, j + 1, c] + dv[i, j, c])
+                        cc += fu * fv
+                        dc += dfu * fv + fu * dfv
+                    for c in range(3):
+                        fu = 0.5 * (xu[i + 1, j, c] + xu[i, j, c])
+                        fv = 0.5 * (xv[i, j + 1, c] + xv[i, j, c])
+                        dfu = 0.5 * (du[i + 1, j, c] + du[i, j, c])
+                        dfv = 0.5 * (dv[i, j + 1, c] + dv[i, j, c])
+                        tu = 0.5 * ksh[b] * (dc * fv + cc * dfv)
+                        tv = 0.5 * ksh[b] * (dc * fu + cc * dfu)
+                        qu[i, j, c] += tu
+                        qu[i + 1, j, c] += tu
+                        qv[i, j, c] += tv
+                        qv[i, j + 1, c] += tv
+            for i in range(h):                                  # bend: x_uu
+                for j in range(w - 2):
+                    f = kb[b] * wr[i] * ic[j] * ibx * ibx
+                    for c in range(3):
+                        t = f * (du[i, j + 1, c] - du[i, j, c])
+                        qu[i, j + 1, c] += t
+                        qu[i, j, c] -= t
+            for i in range(h - 1):                              # bend: x_uv
+                for j in range(w - 1):
+                    f = 2.0 * kb[b] * iby * iby
+                    for c in range(3):
+                        t = f * (du[i + 1, j, c] - du[i, j, c])
+                        qu[i + 1, j, c] += t
+                        qu[i, j, c] -= t
+            for i in range(h - 2):                              # bend: x_vv
+                for j in range(w):
+                    f = kb[b] * wc[j] * ir[i] * iby * iby
+                    for c in range(3):
+                        t = f * (dv[i + 1, j, c] - dv[i, j, c])
+                        qv[i + 1, j, c] += t
+                        qv[i, j, c] -= t
+            inert = dt2 + damp[b] * dt2 * dt
+            for i in range(h):                                  # divergence, inertia, damping
+                for j in range(w):
+                    m = inert * np.float64(mass[b, i, j])
+                    for c in range(3):
+                        t = 0.0
+                        if j > 0:
+                            t += qu[i, j - 1, c] * ibx
+                        if j < w - 1:
+                            t -= qu[i, j, c] * ibx
+                        if i > 0:
+                            t += qv[i - 1, j, c] * iby
+                        if i < h - 1:
+                            t -= qv[i, j, c] * iby
+                        out[k, b, i, j, c] = dt2 * t + m * np.float64(d[k, b, i, j, c])
+
+
+def _weights(n: int, inner: bool) -> np.ndarray:
+    """The quadrature weights of :mod:`draping.fnopt.cloth` (rim halved; ``inner``: interior).
+
+    ``n`` samples with the rim's halved, or (``inner``) the ``n - 2`` interior ones with the
+    rim's halves added.
+    """
+    if inner:
+        wt = np.ones(n - 2)
+        wt[0] += 0.5
+        wt[-1] += 0.5
+        return wt
+    wt = np.ones(n)
+    wt[0] = wt[-1] = 0.5
+    return wt
+
+
+def _per_sheet(v, b: int) -> np.ndarray:
+    return np.ascontiguousarray(np.broadcast_to(
+        torch.as_tensor(v).detach().double().reshape(-1).numpy(), (b,)))
+
+
+def loss_hvp_fused(d: torch.Tensor, a: torch.Tensor, x_prev: torch.Tensor, v_prev: torch.Tensor,
+                   hx, hy, material: dict, dt: float, mass: torch.Tensor) -> torch.Tensor:
+    """:func:`draping.fnopt.cloth.loss_hvp` in one fused numba pass (not differentiable).
+
+    Parameters and units as there: ``d`` ``(K, B, H, W, 3)`` or ``(B, H, W, 3)`` directions
+    (m/s^2), ``a``, ``x_prev``, ``v_prev`` ``(B, H, W, 3)``, ``mass`` ``(B, H, W)`` (kg).
+    Returns ``H d`` like ``d`` (J s^4/m^2), computed in float64 and returned in ``d``'s dtype:
+    equal to the torch function up to rounding (float64 inputs: ~1e-15 relative).
+
+    Raises
+    ------
+    ValueError
+        If ``d``'s trailing shape is not ``a``'s or the grid is smaller than 3 x 3.
+    """
+    single = d.dim() == 4
+    dd = d[None] if single else d
+    if dd.dim() != 5 or dd.shape[1:] != a.shape:
+        raise ValueError(f"d: expected shape (K, *{tuple(a.shape)}) or {tuple(a.shape)}, got "
+                         f"{tuple(d.shape)}")
+    b, h, w, _ = a.shape
+    if h < 3 or w < 3:
+        raise ValueError(f"a: expected a grid of at least 3 x 3 vertices, got {h} x {w}")
+    x = positions_from_accel(a.detach(), x_prev, v_prev, dt)
+    area = _per_sheet(hx, b) * _per_sheet(hy, b)
+    k = {n: _per_sheet(material.get(n, 0.0), b) for n in ("stretch", "shear", "bend", "damping")}
+    out = np.empty(dd.shape, dtype=np.float64)
+    _hvp(dd.detach().contiguous().numpy(), x.contiguous().numpy(),
+         mass.detach().contiguous().numpy(), _per_sheet(hx, b), _per_sheet(hy, b),
+         k["stretch"] * area, k["shear"] * area, 1e-3 * k["bend"] * area, k["damping"],
+         _weights(h, False), _weights(w, False), _weights(h, True), _weights(w, True),
+         float(dt), out)
+    res = torch.from_numpy(out).to(d.dtype)
+    return res[0] if single else res
+
+
+@nb.njit(cache=True, fastmath=True)
+def _gram(d, hd, g, a, r):
+    n_b, n_dir, n = d.shape
+    for b in range(n_b):
+        for i in range(n_dir):
+            s = 0.0
+            for q in range(n):
+                s += np.float64(g[b, q]) * np.float64(d[b, i, q])
+            r[b, i] = -s
+            for j in range(n_dir):
+                s = 0.0
+                for q in range(n):
+                    s += np.float64(d[b, i, q]) * np.float64(hd[b, j, q])
+                a[b, i, j] = s
+
+
+def gram_fused(g: torch.Tensor, dirs: list, hd: list) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(D^T H D (B, k, k), -g^T D (B, k))`` in float64 from float32 or float64 fields.
+
+    ``dirs``, ``hd``: ``k`` fields ``(B, H, W, 3)`` (directions and their Hessian products),
+    ``g`` ``(B, H, W, 3)``. The products of :func:`draping.fnopt.solvers.subspace_solve`'s
+    model, summed in float64 (another order than torch's: equal up to rounding). Not
+    differentiable.
+    """
+    b = g.shape[0]
+    d = torch.stack(dirs, 1).detach().reshape(b, len(dirs), -1).numpy()
+    h = torch.stack(hd, 1).detach().reshape(b, len(dirs), -1).numpy()
+    a = np.empty((b, len(dirs), len(dirs)))
+    r = np.empty((b, len(dirs)))
+    _gram(d, h, g.detach().reshape(b, -1).contiguous().numpy(), a, r)
+    return torch.from_numpy(a), torch.from_numpy(r)
