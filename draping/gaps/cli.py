@@ -98,6 +98,9 @@ def register_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--collision-stiffness", type=float, default=None, metavar="K",
                    help="k_c of the cubic body-collision loss, eq. (40), in J/m^3 (default 1e4; "
                    "the shipped dress uses 1e5)")
+    p.add_argument("--collision-eps", type=float, default=None, metavar="M",
+                   help="clearance epsilon of the collision loss, eq. (40), and of the k_ext "
+                   "schedule, eq. (45), in metres (default 0.002)")
     p.add_argument("-o", "--out", required=True, metavar="DIR", help="run folder")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in DIR (same settings); without it DIR starts afresh")
@@ -117,7 +120,7 @@ def _settings(args):
             mk[k] = getattr(args, k)
     tk = {"seed": args.seed, "init": args.init}
     for k in ("random_motions", "lr", "lr_epochs", "burn_in", "shapes", "grad_clip",
-              "collision_stiffness"):
+              "collision_stiffness", "collision_eps"):
         if getattr(args, k) is not None:
             tk[k] = getattr(args, k)
     if args.batch is not None:

@@ -21,7 +21,7 @@ def test_help_documents_options_and_units():
     t = _help("train-drape")
     for opt in ("--method", "--garment", "--garment-file", "--minutes", "--steps", "--seed",
                 "--resume", "-o", "--width", "--depth", "--rank", "--inextensibility",
-                "--skin-smoothing", "--collision-stiffness"):
+                "--skin-smoothing", "--collision-stiffness", "--collision-eps"):
         assert opt in t, opt
     for word in ("minutes", "snug", "ncs", "held", "eps_c", "CPU"):
         assert word in t, word
@@ -118,8 +118,9 @@ def test_option_choices_are_the_library_names():
 
 
 def test_collision_stiffness_option(capsys, tmp_path):
-    """``--collision-stiffness`` sets k_c of eq. (40) (the shipped dress uses 1e5); left out, the
-    library default; a negative value is refused with one line naming it."""
+    """``--collision-stiffness`` sets k_c of eq. (40) (the shipped dress uses 1e5) and
+    ``--collision-eps`` its clearance (m); left out, the library defaults; a negative value is
+    refused with one line naming it."""
     from draping.gaps import TrainSettings
     from draping.gaps.cli import _settings
 
@@ -130,4 +131,8 @@ def test_collision_stiffness_option(capsys, tmp_path):
     assert _settings(parser.parse_args(base)).collision_stiffness == \
         TrainSettings().collision_stiffness
     assert "collision_stiffness" in _fails(capsys, [*base, "--collision-stiffness", "-1"])
+    args = parser.parse_args([*base, "--collision-eps", "0.004"])
+    assert _settings(args).collision_eps == 0.004
+    assert _settings(parser.parse_args(base)).collision_eps == TrainSettings().collision_eps
+    assert "collision_eps" in _fails(capsys, [*base, "--collision-eps", "-0.001"])
     assert not (tmp_path / "r" / "checkpoint.pt").exists()
