@@ -87,10 +87,10 @@ class SpectralConv2d(nn.Module):
 
         With gradients enabled (training) the full 2-D transforms of the trained weights' own
         run, bit for bit (``polygeo train-fnopt`` reproduces the shipped weights exactly);
-        without (inference), :meth:`forward_pruned`, the same operator 1.3-3x faster.
+        without (inference), :meth:`forward_dft`, the same operator up to float rounding.
         """
         if not torch.is_grad_enabled():
-            return self.forward_pruned(x)
+            return self.forward_dft(x)
         b, _, h, w = x.shape
         f = torch.fft.rfft2(x)
         m1, m2 = min(self.modes, h // 2), min(self.modes, w // 2 + 1)
@@ -120,6 +120,60 @@ class SpectralConv2d(nn.Module):
         out[:, :, :m1] = y[:, :, :m1]
         out[:, :, h - m1:] = y[:, :, m1:]
         return torch.fft.irfft(torch.fft.ifft(out, dim=-2), n=w, dim=-1)
+
+
+    def forward_dft(self, x: torch.Tensor) -> torch.Tensor:
+        """:meth:`forward` with the truncated transforms as matrix products (inference).
+
+        Only ``2 m1 x m2`` of the ``H x (W / 2 + 1)`` Fourier coefficients are kept, so the
+        transforms are dense products with cached ``(W, 2 m2)``, ``(2 m1, H)``, ``(H, 2 m1)``
+        and ``(2 m2, W)`` matrices (:func:`_dft_matrices`, built in float64 per grid size)
+        instead of full FFTs: equal to :meth:`forward_pruned` up to float rounding (3e-7
+        relative in float32), per layer 0.47 -> 0.30 ms at 100x100, 0.19 -> 0.15 ms at 64x64
+        (one thread; equal at 32x32).
+        """
+        b, _, h, w = x.shape
+        m1, m2 = min(self.modes, h // 2), min(self.modes, w // 2 + 1)
+        fw, fh, gh, bw = _dft_matrices(h, w, m1, m2, x.dtype)
+        r = torch.matmul(x, fw)                                         # (B, C, H, 2 m2)
+        f = torch.matmul(fh, torch.complex(r[..., :m2], r[..., m2:]))     # (B, C, 2 m1, m2)
+        wc = torch.view_as_complex(self.w).to(f.dtype)
+        wk = torch.cat([wc[0, :, :, :m1, :m2], wc[1, :, :, :m1, :m2]], 2)
+        z = torch.matmul(gh, (f[:, :, None] * wk).sum(1))                # (B, C_out, H, m2)
+        return torch.matmul(torch.cat([z.real, z.imag], -1), bw)
+
+
+_DFT_CACHE: dict = {}
+
+
+def _dft_matrices(h: int, w: int, m1: int, m2: int, dtype: torch.dtype):
+    """The truncated real/complex DFT matrices of :meth:`SpectralConv2d.forward_dft` (cached).
+
+    ``fw`` ``(W, 2 m2)``: the cosines and minus sines of ``rfft`` along the columns (real and
+    imaginary parts side by side); ``fh`` ``(2 m1, H)``: the forward transform on the kept
+    rows (``0 .. m1-1`` and ``H-m1 .. H-1``); ``gh`` ``(H, 2 m1)``: its inverse with ``1/H``;
+    ``bw`` ``(2 m2, W)``: ``irfft`` of the kept columns (``1/W``, the non-DC, non-Nyquist
+    columns counted twice for their conjugates, the imaginary parts of DC and Nyquist
+    ignored, as ``irfft`` does).
+    """
+    key = (h, w, m1, m2, dtype)
+    if key not in _DFT_CACHE:
+        f64 = torch.float64
+        th = 2 * math.pi * torch.outer(torch.arange(w, dtype=f64), torch.arange(m2, dtype=f64)) / w
+        rows = torch.cat([torch.arange(m1), torch.arange(h - m1, h)]).to(f64)
+        ph = 2 * math.pi * torch.outer(rows, torch.arange(h, dtype=f64)) / h       # (2 m1, H)
+        c = torch.full((m2,), 2.0, dtype=f64)
+        c[0] = 1.0
+        if w % 2 == 0 and m2 - 1 == w // 2:
+            c[-1] = 1.0
+        cdt = torch.complex128 if dtype == f64 else torch.complex64
+        _DFT_CACHE[key] = (
+            torch.cat([torch.cos(th), -torch.sin(th)], 1).to(dtype),
+            torch.complex(torch.cos(ph), -torch.sin(ph)).to(cdt),
+            (torch.complex(torch.cos(ph), torch.sin(ph)).T / h).to(cdt),
+            (torch.cat([c[:, None] * torch.cos(th.T), -c[:, None] * torch.sin(th.T)], 0)
+             / w).to(dtype))
+    return _DFT_CACHE[key]
 
 
 class FNO(nn.Module):
