@@ -42,7 +42,11 @@ is processed in nor on the unit. The curvatures (and ``order``, ``n_neighbors``,
 ``coeffs``) are those of the fixed ``(k, order)`` chosen for them; the normal is that of the
 fixed setting chosen for it (with ``order="auto"`` possibly a plane), the curvatures' signs
 and directions following it. Clean data get a 4-jet on small neighbourhoods, noisy data wider
-ones and lower orders (figures: README, Performance).
+ones and lower orders (figures: README, Performance). With both ``k="auto"`` and
+``order="auto"`` the normals are then checked once per cloud against the default setting's
+(``k=20``, order 2) on held-out points (:mod:`polygeo._estimate_check`): where the default's
+tangent planes predict them clearly better (real scans with fine detail), its normals are
+returned instead (the curvatures keep theirs, signs following).
 
 Measured choices. ``max_cond`` defaults to ``MAX_COND = {1: 1e3, 2: 1e3, 3: 1e4, 4: 1e5}``:
 well-spread 20-neighbourhoods measure about 6-30 at order 2 (up to a few 1e3 at order 4);
@@ -70,6 +74,7 @@ import torch
 from . import jets
 from ._diffgeo_numba import jet_geometry
 from ._estimate_auto import fit_auto
+from ._estimate_check import check_default
 from ._estimate_output import extras, non_manifold_status, oriented_outputs
 from ._estimate_stages import (
     AUTO_K_CANDIDATES,
@@ -357,6 +362,8 @@ def _fit_points(pts_t: torch.Tensor, hoods: Neighbourhoods, out: Any, s: Setting
     """
     if _auto_compiled(s):  # automatic order / size on one k-NN list: two passes
         fit_auto(hoods, out, settings=s)
+        if s.k == "auto" and s.order == "auto":  # the normal, checked against the default
+            check_default(hoods.P, hoods.finite, out, s)
         return None
     parts = [] if s.use_torch else None
     for q in hoods.chunks(s.batch_size, s.progress):

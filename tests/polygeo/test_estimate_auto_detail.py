@@ -12,6 +12,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+import polygeo.estimate as E
 from polygeo import _estimate_auto as ea
 from polygeo import synthetic as sy
 from polygeo._estimate_stages import AUTO_K_CANDIDATES, Neighbourhoods
@@ -214,6 +215,8 @@ def test_normal_noise_from_the_narrowest_fits_on_fine_detail(monkeypatch, seed):
     P, normals, inner = detailed_patch(seed=seed)
     default = rms_angle(differential_quantities(P, k=20, order=2, orient="none"), normals,
                         inner)
+    # the per-point choice itself (no held-out check against the default, _estimate_check)
+    monkeypatch.setattr(E, "check_default", lambda *args: {})
     got = {}
     for narrowest in (True, False):
         if not narrowest:

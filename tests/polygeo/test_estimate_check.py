@@ -1,0 +1,111 @@
+"""The held-out check of the automatic normal against the default setting (_estimate_check)."""
+
+import numpy as np
+import pytest
+
+import polygeo.estimate as E
+from polygeo import _estimate_check as ec
+from polygeo import synthetic as sy
+from polygeo.estimate import differential_quantities
+
+
+def test_offset_score_is_the_squared_sine_of_the_tilt():
+    """One fitted point at the origin, held-out points along x and y of a plane z = 0: a
+    normal tilted by ``t`` about y gives ``sin(t)^2`` along x and 0 along y; a pair at
+    distance 0 is skipped."""
+    P = np.array([[0.0, 0, 0], [2.0, 0, 0], [0, 3.0, 0], [0, 0, 0]])
+    t = 0.3
+    n = np.array([[np.sin(t), 0.0, np.cos(t)]])
+    scores, valid = ec.offset_scores(P, np.array([0]), np.array([1]), [n], m=1)
+    np.testing.assert_allclose(scores, [[np.sin(t) ** 2]])
+    scores, _ = ec.offset_scores(P, np.array([0]), np.array([2]), [n], m=1)
+    np.testing.assert_allclose(scores, [[0.0]], atol=1e-30)
+    scores, valid = ec.offset_scores(P, np.array([0]), np.array([1, 2, 3]), [n], m=3)
+    np.testing.assert_allclose(scores, [[np.sin(t) ** 2 / 2]])  # the duplicate skipped
+    assert valid.all()
+
+
+def test_offset_scores_estimate_the_difference_of_mean_squared_errors():
+    """A noisy plane, normals with random tilts of known spread (independent of the noise):
+    twice the mean score difference is the difference of the mean squared normal errors
+    (rad^2), whatever the noise adds to both."""
+    rng = np.random.default_rng(0)
+    n_side = 120
+    g = np.arange(n_side, dtype=float)
+    x, y = (c.ravel() + rng.uniform(-0.3, 0.3, n_side * n_side) for c in np.meshgrid(g, g))
+    P = np.c_[x, y, rng.normal(scale=0.2, size=x.size)]
+    held = rng.random(len(P)) < 0.1
+    a, b = np.flatnonzero(~held), np.flatnonzero(held)
+    normals, mse = [], []
+    for tau in (0.02, 0.05):
+        d = rng.normal(scale=tau, size=(a.size, 2))
+        n = np.c_[d, np.ones(a.size)]
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        normals.append(n)
+        mse.append(np.mean(np.arccos(n[:, 2]) ** 2))
+    scores, valid = ec.offset_scores(P, a, b, normals)
+    v = ec.held_out_verdict(scores[0, valid], scores[1, valid])
+    assert v["dmse"] == pytest.approx(mse[0] - mse[1], rel=0.15)
+    assert v["default"] is False  # the first ("automatic") is the better one
+    v = ec.held_out_verdict(scores[1, valid], scores[0, valid])
+    assert v["default"] is True and v["dmse"] > 3 * v["se"]
+
+
+def test_verdict_needs_significance_and_size():
+    rng = np.random.default_rng(1)
+    base = rng.uniform(0.5, 1.5, 4000)
+    # better by 5 % of the level and clearly significant: the default
+    assert ec.held_out_verdict(base * 1.05, base)["default"] is True
+    # significant but below REL_MIN of the level (the criterion's own bias): kept
+    assert ec.held_out_verdict(base * (1 + ec.REL_MIN / 4), base)["default"] is False
+    # large but not significant (the difference is noise): kept
+    noisy = base + rng.normal(scale=5.0, size=base.size)
+    assert ec.held_out_verdict(noisy + 0.05, base)["default"] is False
+    v = ec.held_out_verdict(np.ones(1), np.zeros(1))
+    assert v["default"] is False and np.isnan(v["dmse"])
+
+
+def test_too_few_points_keep_the_automatic_normal():
+    s = sy.sphere(500, seed=3, noise=1e-3)
+    hoods_P = np.asarray(s.noisy_points, dtype=np.float64)
+    v = ec.check_default(hoods_P, np.ones(len(hoods_P), bool), None, None)
+    assert v["default"] is False and "held-out" in v["skipped"]
+
+
+def _rms(res, truth, sel=None):
+    sel = np.arange(len(truth)) if sel is None else sel
+    c = np.abs(np.einsum("ij,ij->i", np.asarray(res.normals)[sel], truth[sel]))
+    return float(np.sqrt(np.mean(np.degrees(np.arccos(np.clip(c, 0, 1))) ** 2)))
+
+
+def test_check_keeps_the_automatic_normal_on_iid_noise(monkeypatch):
+    """A noisy sphere (the automatic normal is 3x better than the default): kept."""
+    got = {}
+
+    def spy(*args):
+        got.update(ec.check_default(*args))
+        return got
+
+    monkeypatch.setattr(E, "check_default", spy)
+    s = sy.sphere(4000, seed=5, noise=1e-3)
+    res = differential_quantities(s.noisy_points, k="auto", order="auto", orient="none")
+    default = differential_quantities(s.noisy_points, orient="none")
+    assert got["default"] is False and got["dmse"] < 0
+    assert _rms(res, s.normals) < 0.5 * _rms(default, s.normals)
+
+
+def test_check_gives_the_default_normal_where_held_out_points_prefer_it(monkeypatch):
+    """Forced verdict: the default's normals replace the automatic ones (lines equal), the
+    curvatures follow their sign (H's magnitude unchanged)."""
+    monkeypatch.setattr(ec, "held_out_verdict", lambda sa, sd: dict(default=True))
+    s = sy.torus(3000, seed=7, noise=1e-3)
+    res = differential_quantities(s.noisy_points, k="auto", order="auto", orient="none")
+    default = differential_quantities(s.noisy_points, orient="none")
+    dot = np.einsum("ij,ij->i", res.normals, default.normals)
+    ok = (res.status == 0) & (default.status == 0)
+    np.testing.assert_allclose(np.abs(dot[ok]), 1.0, atol=1e-12)
+    monkeypatch.setattr(ec, "held_out_verdict", lambda sa, sd: dict(default=False))
+    kept = differential_quantities(s.noisy_points, k="auto", order="auto", orient="none")
+    np.testing.assert_allclose(np.abs(res.mean_curvature), np.abs(kept.mean_curvature))
+    sign = np.sign(np.einsum("ij,ij->i", res.normals, kept.normals))
+    np.testing.assert_allclose(res.mean_curvature, sign * kept.mean_curvature)
