@@ -145,3 +145,33 @@ def test_low_modes_by_matrices_equal_the_full_dct(shape):
     got = solvers.low_modes(z, 4)
     assert got.shape == z.shape and got.is_contiguous()
     assert torch.allclose(got, want, rtol=0, atol=1e-13 * float(z.abs().max()))
+
+
+def test_fused_subspace_solve_equals_torch_one():
+    """Gram by the kernel and the k x k solve in NumPy: torch's values, also with a zero
+    direction, a repeated one and negative curvature (the shifted solve)."""
+    gen = torch.Generator().manual_seed(6)
+    g = torch.randn(2, 6, 5, 3, generator=gen, dtype=F64)
+    d0 = torch.randn(2, 6, 5, 3, generator=gen, dtype=F64)
+    d1 = torch.randn(2, 6, 5, 3, generator=gen, dtype=F64)
+    dirs = [d0, d1, torch.zeros_like(d0), d0.clone()]
+    for hd in ([2.0 * d for d in dirs],                                  # positive definite
+               [2.0 * dirs[0], -3.0 * dirs[1], dirs[2], 2.0 * dirs[3]]):  # indefinite
+        with torch.no_grad():
+            (c, m), (cs, ms) = solvers.subspace_solve(g, dirs, hd, sub=2, fused=True)
+            (c0, m0), (cs0, ms0) = solvers.subspace_solve(g, dirs, hd, sub=2)
+        d = torch.stack(dirs, 1)
+        # the step and the model value (how the repeated pair shares its weight is fixed only
+        # by the 1e-12 shift, i.e. by rounding) and the other directions' coefficients
+        for got, want in ((c, c0), (cs, cs0)):
+            step, step0 = (torch.einsum("bi,bihwc->bhwc", cc, d) for cc in (got, want))
+            assert torch.allclose(step, step0, rtol=1e-10, atol=1e-10 * float(step0.abs().max()))
+            assert torch.allclose(got[:, 1:3], want[:, 1:3], rtol=1e-10, atol=1e-14)
+        for got, want in ((m, m0), (ms, ms0)):
+            assert got.dtype == F64 and got.shape == want.shape
+            assert torch.allclose(got, want, rtol=1e-10, atol=0)
+        assert float(c[:, 2].abs().max()) == 0.0                        # the zero direction
+        assert bool((m <= 0).all())
+    d = d0.clone().requires_grad_(True)           # a gradient needed: torch's path, differentiable
+    (c, _), _ = solvers.subspace_solve(g, [d, d1], [2.0 * d, 2.0 * d1], sub=1, fused=True)
+    assert c.requires_grad
