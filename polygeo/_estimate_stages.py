@@ -79,6 +79,7 @@ class Settings:
     use_torch: bool
     monge: bool
     forms: bool
+    normal_check: bool = True
 
     @property
     def orders(self) -> tuple[int, ...]:

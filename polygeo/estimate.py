@@ -254,6 +254,7 @@ def differential_quantities(
     alpha: float = 0.01,
     max_cond: float | None = None,
     interpolate: bool = False,
+    normal_check: bool = True,
 ) -> DifferentialQuantities:
     """Per-point normals, principal curvatures and directions, H and K by n-jet fitting.
 
@@ -287,10 +288,9 @@ def differential_quantities(
         Uniform least squares (CGAL) or Gaussian weights ``exp(-d^2 / rms^2)`` of distance.
     orient : {"auto", "input", "mesh", "propagate", "none"}
         Source of the normals' signs (see the module docstring); "none" keeps the fit's sign.
-    monge : bool
-        Also return the Monge coefficients (``monge`` field).
-    forms : bool
-        Also return the fundamental forms (``metric``, ``second_form`` fields).
+    monge, forms : bool
+        Also return the Monge coefficients (``monge``), the fundamental forms (``metric``,
+        ``second_form``).
     batch_size : int
         Points per chunk (bounds memory: about ``batch_size * k * 60`` bytes).
     progress : bool or None
@@ -312,6 +312,9 @@ def differential_quantities(
         Pass each jet through its query point (Cazals & Pouget's interpolation variant):
         for exact samples (analytic, CAD, subdivision surfaces); on noisy ones it about
         doubles the curvature error (module docstring, "Measured choices").
+    normal_check : bool
+        ``k="auto", order="auto"``: the normals checked once per cloud against the default's
+        on held-out points (module docstring; about twice the time). False: as tiled runs.
 
     Returns
     -------
@@ -331,8 +334,8 @@ def differential_quantities(
     s = _settings(k=k, radius=radius, rings=rings, order=order, weights=weights, orient=orient,
                   monge=monge, forms=forms, batch_size=batch_size, progress=progress,
                   workers=workers, backend=backend, k_candidates=k_candidates,
-                  auto_orders=auto_orders, alpha=alpha, max_cond=max_cond,
-                  interpolate=interpolate, requires_grad=pts_t.requires_grad)
+                  auto_orders=auto_orders, alpha=alpha, max_cond=max_cond, interpolate=interpolate,
+                  requires_grad=pts_t.requires_grad, normal_check=normal_check)
     # inputs: float64 points (non-finite ones marked), faces and reference normals checked
     P, finite, faces_np, reference = _inputs(pts_t, faces, normals, settings=s)
     # neighbours: k-d tree, radius ball or mesh rings, nearest first, duplicates merged
@@ -362,7 +365,7 @@ def _fit_points(pts_t: torch.Tensor, hoods: Neighbourhoods, out: Any, s: Setting
     """
     if _auto_compiled(s):  # automatic order / size on one k-NN list: two passes
         fit_auto(hoods, out, settings=s)
-        if s.k == "auto" and s.order == "auto":  # the normal, checked against the default
+        if s.k == "auto" and s.order == "auto" and s.normal_check:  # against the default
             check_default(hoods.P, hoods.finite, out, s)
         return None
     parts = [] if s.use_torch else None
@@ -391,13 +394,15 @@ def _as_points(points: Any) -> tuple[torch.Tensor, bool]:
 
 def _settings(*, k, radius, rings, order, weights, orient, monge, forms, batch_size, progress,
               workers, backend, k_candidates, auto_orders, alpha, max_cond, interpolate,
-              requires_grad) -> Settings:
+              requires_grad, normal_check=True) -> Settings:
     """The arguments of :func:`differential_quantities` checked (see its Raises)."""
     check_choice(orient, "orient", ("auto", "input", "mesh", "propagate", "none"))
     check_choice(weights, "weights", (None, "gaussian"))
     check_choice(backend, "backend", ("auto", "numba", "torch"))
     if not isinstance(interpolate, (bool, np.bool_)):
         raise TypeError(f"interpolate: expected a bool, got {interpolate!r}")
+    if not isinstance(normal_check, (bool, np.bool_)):
+        raise TypeError(f"normal_check: expected a bool, got {normal_check!r}")
     if isinstance(order, str):
         check_choice(order, "order", ("auto",))
         orders = tuple(check_int(o, "auto_orders", low=1, high=4) for o in auto_orders)
@@ -442,7 +447,7 @@ def _settings(*, k, radius, rings, order, weights, orient, monge, forms, batch_s
         auto_orders=tuple(auto_orders), weights=weights,
         max_cond={o: max_cond or MAX_COND[o] for o in orders}, interpolate=bool(interpolate),
         alpha=alpha, orient=orient, batch_size=batch_size, progress=progress, workers=workers,
-        use_torch=use_torch, monge=monge, forms=forms,
+        use_torch=use_torch, monge=monge, forms=forms, normal_check=bool(normal_check),
     )
 
 

@@ -112,6 +112,10 @@ class TileSettings:
         Normals towards ``+z``, or as fitted.
     k_candidates : tuple of int
         Sizes tried by ``k="auto"``.
+
+    With ``k="auto"`` and ``order="auto"`` the tiles run without the held-out check of the
+    normals (``normal_check=False``): it decides once per cloud, and a verdict per tile could
+    differ from tile to tile. A tiled run equals an in-memory call with ``normal_check=False``.
     """
 
     k: int | str = 20
@@ -128,6 +132,8 @@ class TileSettings:
                   interpolate=self.interpolate)
         if self.k == "auto":
             kw["k_candidates"] = tuple(self.k_candidates)
+        if self.k == "auto" and self.order == "auto":
+            kw["normal_check"] = False  # one verdict per cloud, never per tile
         return kw
 
     def neighbours(self) -> int:

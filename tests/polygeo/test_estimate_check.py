@@ -109,3 +109,30 @@ def test_check_gives_the_default_normal_where_held_out_points_prefer_it(monkeypa
     np.testing.assert_allclose(np.abs(res.mean_curvature), np.abs(kept.mean_curvature))
     sign = np.sign(np.einsum("ij,ij->i", res.normals, kept.normals))
     np.testing.assert_allclose(res.mean_curvature, sign * kept.mean_curvature)
+
+
+def test_normal_check_false_keeps_each_points_own_choice(monkeypatch):
+    """``normal_check=False``: no check (a forced verdict for the default changes nothing)."""
+    s = sy.torus(2000, seed=9, noise=1e-3)
+    monkeypatch.setattr(ec, "held_out_verdict", lambda sa, sd: dict(default=False))
+    own = differential_quantities(s.noisy_points, k="auto", order="auto", orient="none")
+    monkeypatch.setattr(ec, "held_out_verdict", lambda sa, sd: dict(default=True))
+    off = differential_quantities(s.noisy_points, k="auto", order="auto", orient="none",
+                                  normal_check=False)
+    np.testing.assert_array_equal(off.normals, own.normals)
+    on = differential_quantities(s.noisy_points, k="auto", order="auto", orient="none")
+    assert not np.array_equal(on.normals, own.normals)
+
+
+def test_normal_check_must_be_a_bool():
+    with pytest.raises(TypeError, match="normal_check"):
+        differential_quantities(np.random.default_rng(0).normal(size=(50, 3)),
+                                normal_check="yes")
+
+
+def test_tiles_never_run_the_check():
+    """One verdict per cloud, never per tile: tiled runs pass ``normal_check=False``."""
+    from polygeo.tiling import TileSettings
+
+    assert TileSettings(k="auto", order="auto").estimator_kwargs()["normal_check"] is False
+    assert "normal_check" not in TileSettings(k="auto").estimator_kwargs()
