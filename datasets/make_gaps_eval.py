@@ -7,9 +7,9 @@ Run ``python datasets/make_gaps_eval.py [--garments tshirt dress skirt] [--frame
 ``benchmarks/bm_gaps.py`` imports this file and re-uses the cache.
 
 What is held back from GAPS training (:func:`draping.gaps.training_sequences` samples walk,
-arms, squat and jacks at speeds 0.75 / 1 / 1.3 and ``random`` with seeds below 1000; body
-shapes are drawn with the run's seed, below 1000; ``draping.gaps.held_out_cases`` uses seeds
-1000-1003):
+arms and squat at speeds 0.75 / 1 / 1.3 and ``random`` with seeds below 1000, never
+``jacks``; body shapes are drawn with the run's seed, below 1000;
+``draping.gaps.held_out_cases`` uses seeds 1000-1003):
 
 * motions: ``turn`` (a motion type never trained on) and ``random`` with seed 2000;
 * body shapes: :func:`draping.gaps.random_shapes` with seeds 2000 and 2001 (draws that no

@@ -48,6 +48,11 @@ def test_eval_cases_are_held_back_from_training(ev):
         assert np.abs(pool - s).max(1).min() > 1e-3  # not a training shape
         assert c.shape not in trainer_held_out
     assert len({c.shape for c in cases}) == 2
+    # the record's "held_back" text (this paragraph of the module docstring) says so too
+    text = ev.__doc__.split("\n\n")[2]
+    sampled = text.split("samples")[1].split("at speeds")[0]
+    assert all(m in sampled for m in TRAIN_MOTIONS if m != "random")
+    assert "jacks" not in sampled and "never\n``jacks``" in text
 
 
 @pytest.mark.parametrize("frames", [0, 61])
