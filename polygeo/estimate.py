@@ -300,10 +300,8 @@ def differential_quantities(
     backend : {"auto", "numba", "torch"}
         "torch" is differentiable w.r.t. ``points``; "auto" picks it when ``points`` is a
         tensor requiring grad.
-    k_candidates, auto_orders : tuple of int
-        Neighbourhood sizes tried by ``k="auto"``, orders tried by ``order="auto"``.
-    alpha : float
-        Significance level of the order F-test.
+    k_candidates, auto_orders, alpha : tuple of int, tuple of int, float
+        Sizes tried by ``k="auto"``, orders by ``order="auto"``; the order F-test's level.
     max_cond : float, optional
         Largest accepted condition number of a neighbourhood's preconditioned, equilibrated
         least-squares system (:func:`polygeo.jets.fit`); default per order ``MAX_COND``
@@ -313,8 +311,8 @@ def differential_quantities(
         for exact samples (analytic, CAD, subdivision surfaces); on noisy ones it about
         doubles the curvature error (module docstring, "Measured choices").
     normal_check : bool
-        ``k="auto", order="auto"``: the normals checked once per cloud against the default's
-        on held-out points (module docstring; about twice the time). False: as tiled runs.
+        With ``k="auto", order="auto"``: check the normals once per cloud against the
+        default's on held-out points (module docstring; ~2x the time). Tiled runs: False.
 
     Returns
     -------
