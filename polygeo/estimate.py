@@ -341,18 +341,28 @@ def differential_quantities(
     # frames -> fit -> quantities, chunk by chunk: compiled (fused where it can) or torch
     out = empty_quantities(P.shape[0], s.n_coeffs)
     parts = _fit_points(pts_t, hoods, out, s)
-    # orientation: one sign per point from the input normals, the faces or propagation
+    # oriented outputs, optional fields, the non-manifold check
+    dq = _outputs(out, parts, hoods, P, faces_np, reference, s, pts_t.dtype)
+    result = DifferentialQuantities(points=pts_t, **dq)
+    return _to_numpy(result, points) if numpy_in else result
+
+
+def _outputs(out: Any, parts: list | None, hoods: Neighbourhoods, P: np.ndarray,
+             faces_np: np.ndarray | None, reference: Any, s: Settings, dtype) -> dict:
+    """The fields of :class:`DifferentialQuantities` from the fits in ``out``.
+
+    Orientation (one sign per point from the input normals, the faces or propagation), the
+    optional fundamental forms and Monge coefficients, and on a mesh the status of the points
+    whose neighbourhood crosses a non-manifold edge (a fin).
+    """
     orient_args = dict(P=P, graph=hoods.graph, reference=reference, faces=faces_np,
                        orient=s.orient, workers=s.workers)
-    dq = oriented_outputs(out, parts, settings=s, orient_args=orient_args, dtype=pts_t.dtype)
-    # optional fields: fundamental forms, Monge coefficients
-    dq.update(extras(dq, P, forms=s.forms, monge=s.monge, dtype=pts_t.dtype))
-    # mesh check: a neighbourhood across a non-manifold edge (a fin) is flagged
+    dq = oriented_outputs(out, parts, settings=s, orient_args=orient_args, dtype=dtype)
+    dq.update(extras(dq, P, forms=s.forms, monge=s.monge, dtype=dtype))
     if faces_np is not None:
         dq["status"] = torch.from_numpy(
             non_manifold_status(P, faces_np, out, radius=s.radius, rings=s.rings))
-    result = DifferentialQuantities(points=pts_t, **dq)
-    return _to_numpy(result, points) if numpy_in else result
+    return dq
 
 
 def _fit_points(pts_t: torch.Tensor, hoods: Neighbourhoods, out: Any, s: Settings
