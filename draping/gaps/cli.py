@@ -101,6 +101,10 @@ def register_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--collision-eps", type=float, default=None, metavar="M",
                    help="clearance epsilon of the collision loss, eq. (40), and of the k_ext "
                    "schedule, eq. (45), in metres (default 0.002)")
+    p.add_argument("--k-ext-rings", type=int, default=None, metavar="R",
+                   help="GAPS: let the cloth within R 1-rings of a contact stretch as the "
+                   "contact does (the k_ext schedule, eq. (45)); default 0: only the colliding "
+                   "vertices")
     p.add_argument("-o", "--out", required=True, metavar="DIR", help="run folder")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in DIR (same settings); without it DIR starts afresh")
@@ -120,7 +124,7 @@ def _settings(args):
             mk[k] = getattr(args, k)
     tk = {"seed": args.seed, "init": args.init}
     for k in ("random_motions", "lr", "lr_epochs", "burn_in", "shapes", "grad_clip",
-              "collision_stiffness", "collision_eps"):
+              "collision_stiffness", "collision_eps", "k_ext_rings"):
         if getattr(args, k) is not None:
             tk[k] = getattr(args, k)
     if args.batch is not None:

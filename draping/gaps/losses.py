@@ -90,7 +90,7 @@ def loss_terms(x: torch.Tensor, case: ShapeCase, model: GapsSettings, train: Tra
     model : GapsSettings
         Method (bending form, inextensibility mode).
     train : TrainSettings
-        Collision stiffness and clearance, ``k_i``, query radius.
+        Collision stiffness and clearance, ``k_ext`` rings, ``k_i``, query radius.
     contacts : Contacts
         Of the ``B * L`` frames, in the order of ``x.reshape(B * L, V, 3)``.
     epoch : int
@@ -126,7 +126,7 @@ def loss_terms(x: torch.Tensor, case: ShapeCase, model: GapsSettings, train: Tra
     if mode == "none":
         out["inext"] = torch.zeros_like(out["strain"])
     else:
-        k_ext = (physics.k_ext_schedule(d, epoch, train.collision_eps) if mode == "schedule"
-                 else 1.0)
+        k_ext = (physics.k_ext_schedule(d, epoch, train.collision_eps, rest, train.k_ext_rings)
+                 if mode == "schedule" else 1.0)
         out["inext"] = physics.inextensibility_energy(x, rest, k_ext, train.inext_weight)
     return out

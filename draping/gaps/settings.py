@@ -190,6 +190,10 @@ class TrainSettings:
         ``k_c`` of eq. (40) (J/m^3).
     collision_eps : float
         Clearance ``epsilon`` of eq. (40) (m), relative to the full Anny body.
+    k_ext_rings : int
+        GAPS ``k_ext`` schedule (eq. (45)) spread to the cloth within this many 1-rings of a
+        contact (``rings=`` of :func:`draping.physics.k_ext_schedule`); 0: eq. (45) as
+        written, only the colliding vertices may stretch.
     inext_weight : float
         ``k_i`` of eq. (44).
     query_radius : float
@@ -220,6 +224,7 @@ class TrainSettings:
     burn_in: int = 90
     collision_stiffness: float = 1e4
     collision_eps: float = 2e-3
+    k_ext_rings: int = 0
     inext_weight: float = 2e8
     query_radius: float = 0.02
     seed: int = 0
@@ -240,6 +245,7 @@ class TrainSettings:
         check_int(self.burn_in, "burn_in", low=0)
         check_int(self.seed, "seed")
         check_int(self.checkpoint_every, "checkpoint_every", low=1)
+        check_int(self.k_ext_rings, "k_ext_rings", low=0, high=1000)
         for name in ("lr", "lr_late", "collision_stiffness", "inext_weight", "query_radius"):
             check_positive(getattr(self, name), name)
         for name in ("hidden_std", "collision_eps", "grad_clip"):
@@ -251,11 +257,14 @@ class TrainSettings:
         """The run's identity: the settings without ``steps`` and ``checkpoint_every``.
 
         A run continued for more steps is the same run; the model's part is
-        :meth:`GapsSettings.key_dict`.
+        :meth:`GapsSettings.key_dict`. ``k_ext_rings`` is left out when 0, so the keys of
+        runs from before it existed do not change.
         """
         d = dataclasses.asdict(self)
         for k in ("steps", "checkpoint_every"):
             d.pop(k)
+        if self.k_ext_rings == 0:
+            d.pop("k_ext_rings")
         d["model"] = self.model.key_dict()
         return d
 

@@ -13,8 +13,8 @@ returns one energy per frame, shape ``(...)``; all are differentiable in torch (
 - body collision eq. (27)/(40): cubic penalty on a signed distance supplied by the caller;
 - body friction: lagged, smoothed Coulomb friction (IPC, Li et al. 2020) for dynamic frames;
 - self repulsion eq. (28) over truncated neighbour pairs (memory ``O(V k)``);
-- GAPS covariance inextensibility eq. (44) with the collision-aware ``k_ext`` of eq. (45),
-  built on :mod:`polygeo.covariance`.
+- GAPS covariance inextensibility eq. (44) with the collision-aware ``k_ext`` of eq. (45)
+  (optionally spread to the cloth around a contact), built on :mod:`polygeo.covariance`.
 
 The rest geometry of a garment (inverse rest edge matrices, areas, lumped masses, hinges,
 1-ring neighbourhoods) is computed once by :func:`rest_state`.
@@ -28,6 +28,7 @@ from .contact import (
     plane_distance,
     repulsion_energy,
     repulsion_pairs,
+    spread_over_rings,
 )
 from .elastic import (
     bending_energy,
@@ -59,4 +60,5 @@ __all__ = [
     "repulsion_energy",
     "inextensibility_energy",
     "k_ext_schedule",
+    "spread_over_rings",
 ]

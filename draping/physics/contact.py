@@ -24,6 +24,7 @@ __all__ = [
     "repulsion_energy",
     "inextensibility_energy",
     "k_ext_schedule",
+    "spread_over_rings",
 ]
 
 
@@ -286,12 +287,19 @@ def inextensibility_energy(
     return per.sum(-1)
 
 
-def k_ext_schedule(distance: Any, epoch: int, eps: float = 2e-3) -> torch.Tensor:
+def k_ext_schedule(
+    distance: Any, epoch: int, eps: float = 2e-3, rest: RestState | None = None, rings: int = 0
+) -> torch.Tensor:
     """GAPS collision-aware extension, thesis eq. (45): ``1 + min(10 d_c, 0.03) min(e, 100)``.
 
     ``d_c = max(eps - d, 0)`` (m) is the penetration of each vertex, ``e`` the epoch: the
     garment is allowed to stretch (up to ``1 + 0.03 * 100 = 4``) only where it collides, and
     only gradually.
+
+    With ``rings > 0`` the allowance also reaches the cloth around a contact, which has to
+    stretch for the contact to clear: a vertex that does not collide itself takes the largest
+    ``d_c`` of the colliding vertices within ``rings`` 1-rings of it (of the template graph in
+    ``rest``; :func:`spread_over_rings`). Colliding vertices keep eq. (45) exactly.
 
     Parameters
     ----------
@@ -301,6 +309,10 @@ def k_ext_schedule(distance: Any, epoch: int, eps: float = 2e-3) -> torch.Tensor
         Training epoch ``e`` >= 0.
     eps : float
         Clearance (m) of the collision term.
+    rest : RestState or None
+        The garment's 1-rings; required when ``rings > 0``.
+    rings : int
+        How many 1-rings around each contact share its allowance (0: eq. (45) as written).
 
     Returns
     -------
@@ -310,10 +322,52 @@ def k_ext_schedule(distance: Any, epoch: int, eps: float = 2e-3) -> torch.Tensor
     Raises
     ------
     ValueError
-        Negative epoch or clearance.
+        Negative epoch, clearance or ``rings``; ``rings > 0`` without ``rest``, or a
+        ``distance`` whose last axis is not the garment's vertices.
     """
     epoch = check_int(epoch, "epoch", low=0)
     e = check_positive(eps, "eps", strict=False)
+    rings = check_int(rings, "rings", low=0)
     d = torch.as_tensor(distance).detach()
     dc = torch.clamp(e - d, min=0.0)
+    if rings > 0:
+        if rest is None:
+            raise ValueError(f"rest: expected the garment's RestState with rings={rings}, got None")
+        dc = torch.where(dc > 0, dc, spread_over_rings(dc, rest, rings))
     return 1.0 + torch.clamp(10.0 * dc, max=0.03) * min(int(epoch), 100)
+
+
+def spread_over_rings(values: Any, rest: RestState, rings: int) -> torch.Tensor:
+    """Largest value within ``rings`` 1-rings of each vertex (a max-dilation on the mesh graph).
+
+    Parameters
+    ----------
+    values : (..., V) float
+        Per-vertex values (any units).
+    rest : RestState
+        Gives the 1-rings (``ring_index``, ``ring_mask``; the vertex itself included).
+    rings : int
+        Number of dilation steps, >= 0 (0 returns the values).
+
+    Returns
+    -------
+    (..., V) float tensor
+        ``max`` of ``values`` over the vertices at most ``rings`` edges away.
+
+    Raises
+    ------
+    ValueError
+        Negative ``rings``, a last axis that is not the garment's vertices.
+    """
+    rings = check_int(rings, "rings", low=0)
+    v = torch.as_tensor(values)
+    if v.ndim < 1 or v.shape[-1] != rest.n_vertices:
+        raise ValueError(
+            f"values: expected shape (..., {rest.n_vertices}), got {tuple(v.shape)}"
+        )
+    idx = rest.ring_index.to(v.device).clamp_min(0)
+    mask = rest.ring_mask.to(v.device)
+    low = torch.finfo(v.dtype).min if v.is_floating_point() else torch.iinfo(v.dtype).min
+    for _ in range(rings):
+        v = torch.where(mask, v[..., idx], torch.full_like(v[..., idx], low)).amax(-1)
+    return v

@@ -21,7 +21,7 @@ def test_help_documents_options_and_units():
     t = _help("train-drape")
     for opt in ("--method", "--garment", "--garment-file", "--minutes", "--steps", "--seed",
                 "--resume", "-o", "--width", "--depth", "--rank", "--inextensibility",
-                "--skin-smoothing", "--collision-stiffness", "--collision-eps"):
+                "--skin-smoothing", "--collision-stiffness", "--collision-eps", "--k-ext-rings"):
         assert opt in t, opt
     for word in ("minutes", "snug", "ncs", "held", "eps_c", "CPU"):
         assert word in t, word
@@ -135,4 +135,7 @@ def test_collision_stiffness_option(capsys, tmp_path):
     assert _settings(args).collision_eps == 0.004
     assert _settings(parser.parse_args(base)).collision_eps == TrainSettings().collision_eps
     assert "collision_eps" in _fails(capsys, [*base, "--collision-eps", "-0.001"])
+    assert _settings(parser.parse_args([*base, "--k-ext-rings", "3"])).k_ext_rings == 3
+    assert _settings(parser.parse_args(base)).k_ext_rings == 0
+    assert "k_ext_rings" in _fails(capsys, [*base, "--k-ext-rings", "-1"])
     assert not (tmp_path / "r" / "checkpoint.pt").exists()

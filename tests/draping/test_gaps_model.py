@@ -80,6 +80,41 @@ def test_loss_terms_equal_the_shared_energies(trainer):
         x, rest, kx, s.inext_weight))
 
 
+
+def test_k_ext_rings_setting_reaches_the_loss_and_keeps_old_keys(trainer):
+    """``TrainSettings.k_ext_rings`` spreads eq. (45)'s allowance in L_inext (the shared
+    schedule with the garment's 1-rings); 0 keeps the keys of runs from before it existed."""
+    tr = trainer
+    s = tr.settings.replace(k_ext_rings=2)
+    assert "k_ext_rings" not in tr.settings.key_dict()
+    assert s.key_dict()["k_ext_rings"] == 2
+    assert TrainSettings.from_dict(dataclasses.asdict(s)) == s
+    legacy = dataclasses.asdict(tr.settings)
+    legacy.pop("k_ext_rings")
+    assert TrainSettings.from_dict(legacy) == tr.settings
+    with pytest.raises(ValueError, match="k_ext_rings"):
+        tr.settings.replace(k_ext_rings=-1)
+    case = tr.case(0)
+    rest = case.rest
+    posed = tr.body.pose(case.shape, torch.zeros(3, tr.body.num_bones, 3))
+    x = tr.model.skin(rest.vertices.expand(3, -1, -1), posed.transforms)
+    x = x + 1e-3 * torch.randn(x.shape, generator=torch.Generator().manual_seed(4))
+    contacts = body_contacts(x, posed.vertices, tr.query, s.query_radius)
+    push = torch.zeros(contacts.near.shape, dtype=torch.bool)
+    push[:, torch.nonzero(contacts.near[0]).flatten()[::40]] = True  # a few vertices inside
+    x = torch.where(push[..., None], contacts.anchor - 3e-3 * contacts.normal, x)
+    contacts = body_contacts(x, posed.vertices, tr.query, s.query_radius)
+    d = torch.where(contacts.near, physics.plane_distance(x, contacts.anchor, contacts.normal),
+                    torch.full(contacts.near.shape, 10.0 * s.query_radius))
+    assert bool((d < 0).any())  # some contact, so the rings matter
+    spread = loss_terms(x[None], case, s.model, s, contacts, epoch=40, dt=tr.dt)["inext"][0]
+    plain = loss_terms(x[None], case, s.model, tr.settings, contacts, epoch=40, dt=tr.dt)
+    kx = physics.k_ext_schedule(d, 40, s.collision_eps, rest, 2)
+    assert bool((kx > physics.k_ext_schedule(d, 40, s.collision_eps)).any())
+    torch.testing.assert_close(spread, physics.inextensibility_energy(x, rest, kx,
+                                                                      s.inext_weight))
+    assert not torch.equal(spread, plain["inext"][0])
+
 def test_baseline_terms(trainer):
     """SNUG-like: flat-rest dihedral bending (eq. 17) and no L_inext; k_ext = 1 ablation."""
     tr = trainer

@@ -326,6 +326,65 @@ def test_k_ext_schedule_hand_values():
         P.k_ext_schedule(d, epoch=-1)
 
 
+
+def test_k_ext_rings_reach_the_cloth_around_a_contact():
+    """With ``rings`` the 1-ring neighbours of a contact share its allowance (eq. (45)'s value
+    at the contact), vertices farther away keep 1; colliding vertices keep eq. (45) exactly,
+    also next to a deeper contact; ``rings=0`` is eq. (45) as written."""
+    v, f = grid_sheet(7, 0.6)  # 7 x 7 vertices, row-major; vertex 24 is the centre
+    r = P.rest_state(v, f)
+    n = len(v)
+    d = torch.full((n,), 0.01, dtype=torch.float64)
+    d[24] = -0.01  # deep: d_c = 0.012 -> min(10 d_c, 0.03) = 0.03
+    d[25] = 0.0015  # shallow contact next to it: d_c = 0.0005
+    plain = P.k_ext_schedule(d, 50)
+    k1 = P.k_ext_schedule(d, 50, rest=r, rings=1)
+    k2 = P.k_ext_schedule(d, 50, rest=r, rings=2)
+    contact = d < 2e-3
+    torch.testing.assert_close(k1[contact], plain[contact])
+    torch.testing.assert_close(k2[contact], plain[contact])
+    torch.testing.assert_close(P.k_ext_schedule(d, 50, rest=r, rings=0), plain)
+    ring1 = set(int(j) for j in r.ring_index[24][r.ring_mask[24]]) - {24, 25}
+    far = [i for i in range(n) if i not in ring1 | {24, 25}]
+    assert ring1 and far
+    for j in ring1:  # a non-contact neighbour of the deep contact: its allowance
+        assert float(plain[j]) == 1.0
+        assert float(k1[j]) == pytest.approx(float(plain[24]))
+    # one ring further: reached with rings=2, not with rings=1
+    ring2 = set()
+    for j in ring1:
+        ring2 |= set(int(i) for i in r.ring_index[j][r.ring_mask[j]])
+    ring2 -= ring1 | {24, 25}
+    ring2 -= set(int(i) for i in r.ring_index[25][r.ring_mask[25]])  # the shallow one's ring
+    assert ring2
+    for j in ring2:
+        assert float(k1[j]) == 1.0
+        assert float(k2[j]) == pytest.approx(float(plain[24]))
+    untouched = [i for i in far if i not in ring2 and float(k2[i]) == 1.0]
+    assert len(untouched) > n // 3  # the rest of the sheet stays inextensible
+    # batched distances, float32
+    kb = P.k_ext_schedule(torch.stack([d, d]).float(), 50, rest=r, rings=1)
+    torch.testing.assert_close(kb[1], k1.float())
+
+
+def test_spread_over_rings_is_a_graph_max_dilation_and_validates():
+    v, f = grid_sheet(5, 0.4)
+    r = P.rest_state(v, f)
+    x = torch.zeros(len(v))
+    x[0] = 2.0  # a corner
+    one = P.spread_over_rings(x, r, 1)
+    # independent: the corner's neighbours from the faces
+    nb = {0} | {int(j) for tri in f if 0 in tri for j in tri}
+    assert set(torch.nonzero(one).flatten().tolist()) == nb
+    torch.testing.assert_close(P.spread_over_rings(x, r, 0), x)
+    with pytest.raises(ValueError, match="rest"):
+        P.k_ext_schedule(torch.zeros(len(v)), 5, rings=1)
+    with pytest.raises(ValueError, match="rings"):
+        P.k_ext_schedule(torch.zeros(len(v)), 5, rest=r, rings=-1)
+    with pytest.raises(ValueError, match="values"):
+        P.spread_over_rings(torch.zeros(len(v) + 1), r, 1)
+
+
 # ---------------------------------------------------------------------- batches, gradients
 
 
