@@ -105,6 +105,9 @@ def register_train(sub: argparse._SubParsersAction) -> None:
                    help="GAPS: let the cloth within R 1-rings of a contact stretch as the "
                    "contact does (the k_ext schedule, eq. (45)); default 0: only the colliding "
                    "vertices")
+    p.add_argument("--replay", type=float, default=None, metavar="P",
+                   help="hard-example replay: probability that a step trains again on a recent "
+                   "step whose collision loss was in the top decile (default 0)")
     p.add_argument("-o", "--out", required=True, metavar="DIR", help="run folder")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in DIR (same settings); without it DIR starts afresh")
@@ -124,7 +127,7 @@ def _settings(args):
             mk[k] = getattr(args, k)
     tk = {"seed": args.seed, "init": args.init}
     for k in ("random_motions", "lr", "lr_epochs", "burn_in", "shapes", "grad_clip",
-              "collision_stiffness", "collision_eps", "k_ext_rings"):
+              "collision_stiffness", "collision_eps", "k_ext_rings", "replay"):
         if getattr(args, k) is not None:
             tk[k] = getattr(args, k)
     if args.batch is not None:

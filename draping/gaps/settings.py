@@ -201,6 +201,11 @@ class TrainSettings:
     seed : int
     checkpoint_every : int
         Steps between checkpoints.
+    replay : float
+        Hard-example replay: the probability that a step trains again on the shape and
+        windows of a recent hard step instead of fresh ones. A fresh step is hard when its
+        collision loss is in the top decile of the last 200 fresh steps (once 20 are known);
+        the 64 latest hard steps are kept. 0: every step fresh (the paper).
     init : str or None
         A model file (:func:`draping.gaps.save_model`) of the same garment and architecture to
         start from (fine-tuning) instead of the zero output basis. Its ``skin_smoothing`` may
@@ -229,6 +234,7 @@ class TrainSettings:
     query_radius: float = 0.02
     seed: int = 0
     checkpoint_every: int = 100
+    replay: float = 0.0
     init: str | None = None
 
     def __post_init__(self) -> None:
@@ -250,6 +256,8 @@ class TrainSettings:
             check_positive(getattr(self, name), name)
         for name in ("hidden_std", "collision_eps", "grad_clip"):
             check_positive(getattr(self, name), name, strict=False)
+        if not (isinstance(self.replay, (int, float)) and 0.0 <= self.replay < 1.0):
+            raise ValueError(f"replay: expected a probability in [0, 1), got {self.replay!r}")
         if not self.speeds or not all(math.isfinite(s) and s > 0 for s in self.speeds):
             raise ValueError(f"speeds: expected positive playback speeds, got {self.speeds}")
 
@@ -257,14 +265,15 @@ class TrainSettings:
         """The run's identity: the settings without ``steps`` and ``checkpoint_every``.
 
         A run continued for more steps is the same run; the model's part is
-        :meth:`GapsSettings.key_dict`. ``k_ext_rings`` is left out when 0, so the keys of
-        runs from before it existed do not change.
+        :meth:`GapsSettings.key_dict`. ``k_ext_rings`` and ``replay`` are left out when 0, so
+        the keys of runs from before they existed do not change.
         """
         d = dataclasses.asdict(self)
         for k in ("steps", "checkpoint_every"):
             d.pop(k)
-        if self.k_ext_rings == 0:
-            d.pop("k_ext_rings")
+        for k in ("k_ext_rings", "replay"):
+            if d[k] == 0:
+                d.pop(k)
         d["model"] = self.model.key_dict()
         return d
 

@@ -30,6 +30,10 @@ from .settings import TrainSettings
 
 __all__ = ["TrainResult", "Trainer", "train", "STAGES"]
 
+#: Hard-example replay (``TrainSettings.replay``): fresh steps remembered, the quantile above
+#: which a step is hard, the fewest remembered steps before any is, hard steps kept.
+REPLAY_HISTORY, REPLAY_QUANTILE, REPLAY_MIN, REPLAY_POOL = 200, 0.9, 20, 64
+
 #: Timed stages of a step (CPU seconds summed in the log): body posing, network forward and
 #: skinning, body distance queries, energies, backward and optimiser update.
 STAGES = ("pose", "forward", "query", "energies", "backward")
@@ -72,6 +76,8 @@ class Trainer:
         self.step = 0
         self.grad_ref = float("nan")  # running mean of clipped gradient norms (grad_clip)
         self.timing = dict.fromkeys(STAGES, 0.0)
+        self.history: list[float] = []  # collision losses of the latest fresh steps (replay)
+        self.hard: list[tuple] = []  # (shape index, windows) of the latest hard steps
 
     def _init_from(self, path: str) -> None:
         """Start from a saved model of the same garment and architecture (fine-tuning).
@@ -119,6 +125,33 @@ class Trainer:
             wins.append((k, int(rng.integers(0, n - s.window + 1))))
         return i, wins
 
+    def pick(self, step: int) -> tuple[int, list, bool]:
+        """Shape index and windows of a step, and whether they are fresh.
+
+        Fresh: :meth:`batch`. Otherwise (with probability ``replay`` once there is a hard
+        step; seeded by the step) those of a remembered hard step (:meth:`note`).
+        """
+        s = self.settings
+        if s.replay > 0 and self.hard:
+            rng = np.random.default_rng([s.seed, step, 13])
+            if rng.random() < s.replay:
+                i, wins = self.hard[int(rng.integers(len(self.hard)))]
+                return i, list(wins), False
+        return (*self.batch(step), True)
+
+    def note(self, i: int, wins: list, collision: float) -> bool:
+        """Remember a fresh step's collision loss; keep it as hard if in the top decile.
+
+        Returns whether it was kept.
+        """
+        self.history = (self.history + [float(collision)])[-REPLAY_HISTORY:]
+        if len(self.history) < REPLAY_MIN or not collision > 0:
+            return False
+        if collision < float(np.quantile(self.history, REPLAY_QUANTILE)):
+            return False
+        self.hard = (self.hard + [(int(i), [tuple(map(int, w)) for w in wins])])[-REPLAY_POOL:]
+        return True
+
     def context(self, wins: list, shape: torch.Tensor, h0: torch.Tensor) -> torch.Tensor:
         """GRU states ``(depth, B, width)`` at the windows' first frames (``burn_in``).
 
@@ -142,12 +175,16 @@ class Trainer:
                 out.append(h)
         return torch.cat(out, dim=1)
 
-    def losses(self, step: int, timing: dict | None = None) -> tuple[torch.Tensor, dict]:
-        """The loss of a step (differentiable) and its terms per frame (floats)."""
+    def losses(self, step: int, timing: dict | None = None,
+               pick: tuple | None = None) -> tuple[torch.Tensor, dict]:
+        """The loss of a step (differentiable) and its terms per frame (floats).
+
+        ``pick``: the step's ``(shape index, windows)`` (default :meth:`batch`).
+        """
         s, m = self.settings, self.model
         tm = self.timing if timing is None else timing
         c0 = time.process_time()
-        i, wins = self.batch(step)
+        i, wins = self.batch(step) if pick is None else pick
         case = self.case(i)
         sl = [slice(st, st + s.window) for _, st in wins]
         rot = torch.stack([self.sequences[k].rotations[w] for (k, _), w in zip(wins, sl)])
@@ -180,7 +217,10 @@ class Trainer:
         """One optimiser step; returns the logged record."""
         for g in self.opt.param_groups:
             g["lr"] = self.lr()
-        total, per = self.losses(self.step)
+        i, wins, fresh = self.pick(self.step)
+        total, per = self.losses(self.step, pick=(i, wins))
+        if fresh and self.settings.replay > 0 and np.isfinite(per["collision"]):
+            self.note(i, wins, per["collision"])
         c0 = time.process_time()
         self.opt.zero_grad(set_to_none=True)
         ok = bool(torch.isfinite(total))
@@ -214,8 +254,15 @@ class Trainer:
 
     def state(self) -> dict:
         """Tensors of a checkpoint."""
-        return {"model": self.model.state_dict(), "optim": self.opt.state_dict(),
-                "grad_ref": torch.tensor(self.grad_ref, dtype=torch.float64)}
+        out = {"model": self.model.state_dict(), "optim": self.opt.state_dict(),
+               "grad_ref": torch.tensor(self.grad_ref, dtype=torch.float64)}
+        if self.settings.replay > 0:
+            out["replay_history"] = torch.tensor(self.history, dtype=torch.float64)
+            w = self.settings.batch
+            out["replay_hard"] = torch.tensor(
+                [[i] + [v for win in wins for v in win] for i, wins in self.hard],
+                dtype=torch.int64).reshape(-1, 1 + 2 * w)
+        return out
 
     def load_state(self, tensors: dict, step: int) -> None:
         """Restore a checkpoint's tensors."""
@@ -223,6 +270,10 @@ class Trainer:
         self.opt.load_state_dict(tensors["optim"])
         if "grad_ref" in tensors:
             self.grad_ref = float(tensors["grad_ref"])
+        if "replay_history" in tensors:
+            self.history = [float(v) for v in tensors["replay_history"]]
+            self.hard = [(int(r[0]), [(int(r[k]), int(r[k + 1])) for k in range(1, len(r), 2)])
+                         for r in tensors["replay_hard"].tolist()]
         self.step = int(step)
 
 

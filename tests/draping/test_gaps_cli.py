@@ -21,7 +21,8 @@ def test_help_documents_options_and_units():
     t = _help("train-drape")
     for opt in ("--method", "--garment", "--garment-file", "--minutes", "--steps", "--seed",
                 "--resume", "-o", "--width", "--depth", "--rank", "--inextensibility",
-                "--skin-smoothing", "--collision-stiffness", "--collision-eps", "--k-ext-rings"):
+                "--skin-smoothing", "--collision-stiffness", "--collision-eps", "--k-ext-rings",
+                "--replay"):
         assert opt in t, opt
     for word in ("minutes", "snug", "ncs", "held", "eps_c", "CPU"):
         assert word in t, word
@@ -138,4 +139,7 @@ def test_collision_stiffness_option(capsys, tmp_path):
     assert _settings(parser.parse_args([*base, "--k-ext-rings", "3"])).k_ext_rings == 3
     assert _settings(parser.parse_args(base)).k_ext_rings == 0
     assert "k_ext_rings" in _fails(capsys, [*base, "--k-ext-rings", "-1"])
+    assert _settings(parser.parse_args([*base, "--replay", "0.25"])).replay == 0.25
+    assert _settings(parser.parse_args(base)).replay == 0.0
+    assert "replay" in _fails(capsys, [*base, "--replay", "1.5"])
     assert not (tmp_path / "r" / "checkpoint.pt").exists()

@@ -115,6 +115,43 @@ def test_k_ext_rings_setting_reaches_the_loss_and_keeps_old_keys(trainer):
                                                                       s.inext_weight))
     assert not torch.equal(spread, plain["inext"][0])
 
+
+def test_hard_example_replay(body):
+    """``replay``: fresh steps whose collision loss is in the top decile of the recent ones are
+    kept and trained on again with probability ``replay``; the pool survives a checkpoint;
+    ``replay = 0`` keeps the fresh batches and the run keys."""
+    from draping.gaps.train import REPLAY_MIN
+
+    base = TrainSettings(GapsSettings(garment="tshirt", **SMALL), batch=2, shapes=2,
+                         motion_frames=12, speeds=(1.0,), random_motions=1, seed=5)
+    assert "replay" not in base.key_dict()
+    s = base.replace(replay=0.5)
+    assert s.key_dict()["replay"] == 0.5
+    for bad in (-0.1, 1.0, "x"):
+        with pytest.raises(ValueError, match="replay"):
+            base.replace(replay=bad)
+    tr = Trainer(s, body)
+    assert all(tr.pick(k) == (*tr.batch(k), True) for k in range(20))  # nothing hard yet
+    kept = [tr.note(k % 2, tr.batch(k)[1], float(k)) for k in range(REPLAY_MIN + 20)]
+    assert not any(kept[:REPLAY_MIN - 1])  # too few known
+    assert all(kept[REPLAY_MIN:])  # rising losses: each new one is the largest
+    assert not tr.note(0, tr.batch(0)[1], 0.5)  # a low one is not kept
+    assert not tr.note(0, tr.batch(0)[1], 0.0)
+    hard = [(i, list(w)) for i, w in tr.hard]
+    picks = [tr.pick(k) for k in range(400)]
+    replayed = [(i, w) for i, w, fresh in picks if not fresh]
+    assert 150 < len(replayed) < 250
+    assert all((i, w) in hard for i, w in replayed)
+    assert all(p == (*tr.batch(k), True) for k, p in enumerate(picks) if p[2])
+    # checkpoint round trip
+    tr2 = Trainer(s, body)
+    tr2.load_state(tr.state(), 7)
+    assert tr2.history == tr.history and [(i, list(w)) for i, w in tr2.hard] == hard
+    # a training step notes its fresh collision loss
+    tr3 = Trainer(s, body)
+    rec = tr3.train_step()
+    assert tr3.history == [pytest.approx(rec["collision"])]
+
 def test_baseline_terms(trainer):
     """SNUG-like: flat-rest dihedral bending (eq. 17) and no L_inext; k_ext = 1 ablation."""
     tr = trainer
