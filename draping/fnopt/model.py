@@ -30,7 +30,8 @@ from .solvers import (
     subspace_solve,
 )
 
-__all__ = ["FNOConfig", "SpectralConv2d", "FNO", "features", "fno_correction", "fno_direction",
+__all__ = ["FNOConfig", "SpectralConv2d", "FNO", "features", "constant_features",
+           "fno_correction", "fno_direction",
            "fnopt_iteration", "subspace_update", "solve_fnopt", "STEPS",
            "N_INPUTS", "load_pretrained", "n_parameters", "stiffness_numbers", "WEIGHTS"]
 
@@ -117,10 +118,22 @@ class SpectralConv2d(nn.Module):
         fw, fh, gh, bw = _dft_matrices(h, w, m1, m2, x.dtype)
         r = torch.matmul(x, fw)                                         # (B, C, H, 2 m2)
         f = torch.matmul(fh, torch.complex(r[..., :m2], r[..., m2:]))     # (B, C, 2 m1, m2)
-        wc = torch.view_as_complex(self.w).to(f.dtype)
-        wk = torch.cat([wc[0, :, :, :m1, :m2], wc[1, :, :, :m1, :m2]], 2)
-        z = torch.matmul(gh, (f[:, :, None] * wk).sum(1))                # (B, C_out, H, m2)
-        return torch.matmul(torch.cat([z.real, z.imag], -1), bw)
+        z = torch.matmul(gh, (f[:, :, None] * self._kept_weights(m1, m2, f.dtype)).sum(1))
+        return torch.matmul(torch.cat([z.real, z.imag], -1), bw)        # z: (B, C_out, H, m2)
+
+    def _kept_weights(self, m1: int, m2: int, dtype: torch.dtype) -> torch.Tensor:
+        """The complex weights of the kept rows ``(C_in, C_out, 2 m1, m2)`` (inference).
+
+        Cached per ``(m1, m2, dtype)`` and the parameter's identity and version counter, so an
+        in-place change of the weights (an optimiser step, ``load_state_dict``) rebuilds it.
+        """
+        key = (m1, m2, dtype, self.w.data_ptr(), self.w._version)
+        cache = getattr(self, "_kept", None)
+        if cache is None or cache[0] != key:
+            wc = torch.view_as_complex(self.w.detach()).to(dtype)
+            cache = (key, torch.cat([wc[0, :, :, :m1, :m2], wc[1, :, :, :m1, :m2]], 2))
+            self._kept = cache
+        return cache[1]
 
 
 _DFT_CACHE: dict = {}
@@ -187,10 +200,22 @@ class FNO(nn.Module):
         inplace = not torch.is_grad_enabled()
         y = self.lift(x)
         for k, (sp, pw) in enumerate(zip(self.spectral, self.pointwise)):
-            y = sp(y).add_(pw(y)) if inplace else sp(y) + pw(y)
+            y = _add_pointwise(sp(y), pw, y) if inplace else sp(y) + pw(y)
             if k < len(self.spectral) - 1:
                 y = _gelu(y, inplace)
         return self.proj2(_gelu(self.proj1(y), inplace))
+
+
+def _add_pointwise(out: torch.Tensor, conv: nn.Conv2d, y: torch.Tensor) -> torch.Tensor:
+    """``out + conv(y)`` for a 1x1 ``conv``, accumulated into ``out`` (inference).
+
+    One batched matrix product added in place (``baddbmm``) instead of a fresh ``conv(y)``
+    buffer and a separate sum: equal up to float rounding.
+    """
+    b, c, h, w = y.shape
+    o = out.view(b, -1, h * w).add_(conv.bias[None, :, None])
+    return torch.baddbmm(o, conv.weight[:, :, 0, 0].expand(b, -1, -1), y.reshape(b, c, h * w),
+                         out=o).view(out.shape)
 
 
 def _gelu(y: torch.Tensor, inplace: bool) -> torch.Tensor:
@@ -214,29 +239,43 @@ def stiffness_numbers(p: StepProblem) -> torch.Tensor:
                         (torch.log10(b) - 1.0) / 1.5], 1)
 
 
-def features(p: StepProblem, z: torch.Tensor, z_prev: torch.Tensor, da_prev: torch.Tensor,
-             scale: torch.Tensor) -> torch.Tensor:
-    """The FNO's input ``(B, N_INPUTS, H, W)``; fields ``(B, H, W, 3)`` divided by ``scale``."""
-    b, h, w, _ = z.shape
-    s = scale[:, None, None, None]
-    mask = (1.0 - p.free[..., 0]).expand(b, h, w)[:, None]
-    stiff = stiffness_numbers(p).to(z.dtype)[:, :, None, None].expand(b, 3, h, w)
-    yy, xx = torch.meshgrid(torch.linspace(-1, 1, h, dtype=z.dtype),
-                            torch.linspace(-1, 1, w, dtype=z.dtype), indexing="ij")
+def constant_features(p: StepProblem, dtype: torch.dtype) -> torch.Tensor:
+    """The FNO's input channels that one step problem keeps ``(B, 6, H, W)``.
+
+    The handle mask, the three :func:`stiffness_numbers` and the two grid coordinates in
+    ``[-1, 1]``: built once per solve by :func:`solve_fnopt` and passed to :func:`features`.
+    """
+    b, h, w, _ = p.x_prev.shape
+    mask = (1.0 - p.free[..., 0]).to(dtype).expand(b, h, w)[:, None]
+    stiff = stiffness_numbers(p).to(dtype)[:, :, None, None].expand(b, 3, h, w)
+    yy, xx = torch.meshgrid(torch.linspace(-1, 1, h, dtype=dtype),
+                            torch.linspace(-1, 1, w, dtype=dtype), indexing="ij")
     coords = torch.stack([yy, xx])[None].expand(b, 2, h, w)
+    return torch.cat([mask, stiff, coords], 1)
+
+
+def features(p: StepProblem, z: torch.Tensor, z_prev: torch.Tensor, da_prev: torch.Tensor,
+             scale: torch.Tensor, const: torch.Tensor | None = None) -> torch.Tensor:
+    """The FNO's input ``(B, N_INPUTS, H, W)``; fields ``(B, H, W, 3)`` divided by ``scale``.
+
+    ``const``: :func:`constant_features` of ``p`` (built here when not given).
+    """
+    s = scale[:, None, None, None]
+    const = constant_features(p, z.dtype) if const is None else const
     fields = torch.cat([z / s, z_prev / s, da_prev / s], -1).permute(0, 3, 1, 2)
-    return torch.cat([fields, mask, stiff, coords], 1)
+    return torch.cat([fields, const], 1)
 
 
-def fno_correction(model: FNO, p: StepProblem, z, z_prev, da_prev) -> torch.Tensor:
+def fno_correction(model: FNO, p: StepProblem, z, z_prev, da_prev, const=None) -> torch.Tensor:
     """The FNO's proposal ``(B, H, W, 3)`` (m/s^2): ``RMS(z) F(...)``, zero at handles.
 
     ``z = P g`` is the gradient in the metric of
     :func:`draping.fnopt.solvers.laplace_preconditioner`; the FNO sees ``z``, the previous
     ``z`` and the previous update, divided by ``z``'s RMS (scale-free inputs and output).
+    ``const``: :func:`constant_features` of ``p``, when the caller keeps them.
     """
     scale = p.residual_rms(z).clamp(min=1e-12)
-    y = model(features(p, z, z_prev, da_prev, scale)).permute(0, 2, 3, 1)
+    y = model(features(p, z, z_prev, da_prev, scale, const)).permute(0, 2, 3, 1)
     return y * scale[:, None, None, None] * p.free
 
 
@@ -269,7 +308,7 @@ STEPS = ("line", "subspace")
 
 
 def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
-                    create_graph: bool = False, zn=None):
+                    create_graph: bool = False, zn=None, const=None):
     """FNOpt's update: the classical PCG step's subspace plus the FNO's proposal.
 
     The span of the preconditioned steepest descent ``-z``, the previous update (PCG's memory)
@@ -288,7 +327,8 @@ def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
 
     ``zn`` (weights with ``config.normal``): a list of further classical directions, the
     out-of-plane preconditioned gradient's (:func:`draping.fnopt.solvers.normal_directions`);
-    they join the classical step (then ``solve_pcg(..., normal=True)``'s).
+    they join the classical step (then ``solve_pcg(..., normal=True)``'s). ``const``:
+    :func:`constant_features` of ``p`` (a solve builds them once).
 
     Returns
     -------
@@ -296,7 +336,7 @@ def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
         ``(da, da_pcg, m, m_pcg)``: the update and the classical update ``(B, H, W, 3)``
         (m/s^2), and their model decreases ``(B,)`` (J, float64, <= 0).
     """
-    f = fno_correction(model, p, z, z_prev, da_prev)
+    f = fno_correction(model, p, z, z_prev, da_prev, const)
     base = [-z * p.free, da_prev] + (list(zn) if zn is not None else [])
     if create_graph:
         hd = p.hessian_products(base, hvp) + [hvp(f, create_graph=True)]
@@ -351,13 +391,15 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
         return p.compose(a)
     slack = 1e-6 if a.dtype != torch.float64 else 1e-12
     replaced = 0
+    const = constant_features(p, a.dtype)
     val, g, hvp = p.grad_hvp(a)
     for k in range(iters):
         more = k < iters - 1              # a next iteration needs the gradient at a + dn
         z = pre(g) * p.free
         zn = normal_directions(p, g, pn, model.config.normal_split) if pn is not None else None
         with torch.no_grad():
-            dn, dn_pcg, _, m_pcg = subspace_update(model, p, g, hvp, z, z_prev, da, zn=zn)
+            dn, dn_pcg, _, m_pcg = subspace_update(model, p, g, hvp, z, z_prev, da, zn=zn,
+                                                   const=const)
         nxt = _evaluate(p, a + dn, more) if (more or guard) else None
         if guard:
             bad = (nxt[0] - val).double() > m_pcg + slack * val.abs().double()

@@ -52,7 +52,10 @@ class TrainSettings:
     it on validation rollouts at 48x48 (geometric-mean e_CD x 1e3 2.07 / 2.13 / 1.91 against
     4.82 / 4.40 / 4.92; worst case a tie, 37-39 against 31-40); the shipped weights are its
     seed 0, the median (trained by the code before commit 7e8bb74, whose rounding change in the
-    normal direction makes a run today differ from them).
+    normal direction makes a run today differ from them). ``iter_weight``: a pool entry at its
+    ``k``-th inner iteration weighs ``1 + iter_weight k / 10`` in the training loss (0, the
+    shipped weights: every iteration equally; > 0 favours the late iterations, those that decide
+    the ``N = 10`` iterate).
     """
 
     width: int = 16
@@ -75,11 +78,14 @@ class TrainSettings:
     step_rule: str = "subspace"
     normal: bool = True
     normal_split: int = 4
+    iter_weight: float = 0.0
     seed: int = 0
     eval_every: int = 1000
     checkpoint_every: int = 500
 
     def __post_init__(self) -> None:
+        if not (self.iter_weight >= 0 and self.iter_weight < float("inf")):
+            raise ValueError(f"iter_weight: expected a finite float >= 0, got {self.iter_weight!r}")
         if self.step_rule != "subspace":
             raise ValueError(f"step_rule: expected 'subspace', got {self.step_rule!r}")
         if self.handles not in HANDLE_DISTRIBUTIONS:

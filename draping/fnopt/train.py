@@ -245,7 +245,12 @@ def train_step(model: FNO, opt, pool: Pool, s: TrainSettings, step: int) -> floa
     ok = torch.isfinite(q)
     q = torch.where(ok, q, torch.zeros_like(q))
     # a blown-up update still has a gradient, but a logarithmic one
-    loss = torch.where(q > 0, torch.log1p(q.clamp(min=0)), q).sum() / max(int(ok.sum()), 1)
+    term = torch.where(q > 0, torch.log1p(q.clamp(min=0)), q)
+    if s.iter_weight > 0:           # the late iterations (the N = 10 iterate) weigh more
+        w = 1.0 + s.iter_weight * pool.it[ids].double() / 10.0
+        loss = (w * term).sum() / (w * ok).sum().clamp(min=1.0)
+    else:
+        loss = term.sum() / max(int(ok.sum()), 1)
     for grp in opt.param_groups:
         grp["lr"] = _lr(s, step)
     opt.zero_grad()

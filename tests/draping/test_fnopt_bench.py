@@ -132,3 +132,18 @@ def test_sweep_rows_rebuild_the_step_rule_they_were_trained_with(tmp_path):
     assert not net.training
     old = sw.row_config({"width": 16, "modes": 8})
     assert (old.normal, old.normal_split) == (False, 0)
+
+
+def test_every_timed_rollout_follows_an_untimed_warm_up_frame(bm, monkeypatch):
+    # the process's one-time warm-up (numba's cached kernels, DFT / DCT caches) must not be
+    # charged to the first timed row as a per-frame cost
+    calls = []
+
+    def fake(s, step, perturb=0.0, **kw):
+        calls.append(s.frames)
+        return None, "stub", 0.0
+
+    monkeypatch.setattr(bm, "_rollout", fake)
+    s = bm.SimSettings(res=(8, 8), frames=7)
+    out = bm._measure(s, None, None, 1)
+    assert calls == [1, 7] and out["diverged"] == "stub"

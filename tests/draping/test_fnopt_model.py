@@ -69,6 +69,53 @@ def test_pruned_spectral_transform_is_the_full_one(shape):
     assert float((got.double() - full).norm() / full.norm()) < 1e-5
 
 
+def test_inference_forward_is_the_training_forward():
+    # the no-grad FNO (cached kept weights, 1x1 convolutions accumulated by baddbmm, GELUs in
+    # place) against the autograd path (full FFTs, Conv2d), float64: to rounding
+    torch.manual_seed(2)
+    net = model.FNO(model.FNOConfig(width=6, modes=4, layers=3, projection=8)).double()
+    with torch.no_grad():
+        for q in net.parameters():
+            q.normal_(0.0, 0.3)
+    x = torch.randn(2, model.N_INPUTS, 20, 17, dtype=torch.float64)
+    full = net(x).detach()
+    with torch.no_grad():
+        infer = net(x)
+    assert float(full.abs().max()) > 1e-3
+    assert torch.allclose(infer, full, rtol=0, atol=1e-12 * float(full.abs().max()))
+
+
+def test_kept_spectral_weights_follow_weight_changes():
+    # the inference cache of the kept complex weights is rebuilt after an in-place change
+    # (an optimiser step) and after load_state_dict; never a stale operator
+    torch.manual_seed(3)
+    conv = model.SpectralConv2d(3, 2, 4).double()
+    x = torch.randn(1, 3, 16, 16, dtype=torch.float64)
+    with torch.no_grad():
+        first = conv(x)
+        conv.w.mul_(-2.0)
+        second = conv(x)
+    assert torch.allclose(second, -2.0 * first, rtol=1e-12, atol=1e-14)
+    other = model.SpectralConv2d(3, 2, 4).double()
+    conv.load_state_dict(other.state_dict())
+    with torch.no_grad():
+        third = conv(x)
+    assert torch.allclose(third, other(x).detach(), rtol=0, atol=1e-12)
+    assert not torch.allclose(third, second)
+
+
+def test_constant_features_are_the_per_iteration_ones():
+    p = _mid_rollout_problem(12, "diagonal", frames=3)
+    z = torch.randn(1, 12, 12, 3)
+    sc = p.residual_rms(z)
+    const = model.constant_features(p, z.dtype)
+    assert const.shape == (1, 6, 12, 12)
+    assert torch.equal(model.features(p, z, 2 * z, 3 * z, sc, const),
+                       model.features(p, z, 2 * z, 3 * z, sc))
+    # the handle mask channel marks exactly the two diagonal corners
+    assert float(const[0, 0].sum()) == 2.0 and float(const[0, 0, 0, 0]) == 1.0
+
+
 def test_fno_runs_on_any_grid_and_keeps_handles_fixed():
     net = model.FNO(model.FNOConfig(width=8, modes=4, layers=2, projection=8))
     for h, w in ((32, 32), (20, 48), (7, 5)):

@@ -118,7 +118,7 @@ def test_a_useless_proposal_gets_no_weight(monkeypatch):
     for useless in (lambda z, d: -3.0 * z, lambda z, d: 2.0 * d - 0.5 * z,
                     lambda z, d: torch.zeros_like(z)):
         monkeypatch.setattr(model, "fno_correction",
-                            lambda net, p, z, z_prev, d, f=useless: f(z, d))
+                            lambda net, p, z, z_prev, d, const=None, f=useless: f(z, d))
         da, da_pcg, m, m_pcg = model.subspace_update(None, p, g, hvp, z, z, da_prev)
         assert torch.allclose(da, da_pcg, rtol=1e-8, atol=1e-10 * float(da_pcg.abs().max()))
         assert float(m[0]) == pytest.approx(float(m_pcg[0]), rel=1e-9)
@@ -169,6 +169,32 @@ def test_meta_training_step_differentiates_through_the_subspace_step():
     assert all(moved)                                      # every weight got a gradient
     with pytest.raises(ValueError, match="step_rule"):
         TrainSettings(step_rule="line")
+
+
+def test_iteration_weight_of_the_training_loss():
+    # iter_weight > 0 weighs an entry at inner iteration k by 1 + iter_weight k / 10: with every
+    # entry at the same k the weights cancel (the unweighted loss, to rounding); at k = 0 they
+    # are all 1 (the same loss bit for bit)
+    from draping.fnopt.train import Pool, TrainSettings, train_step
+
+    def loss_at(k, w):
+        s = TrainSettings(width=4, modes=2, layers=1, projection=4, res=8, pool=4, batch=4,
+                          steps=3, iter_weight=w)
+        pool = Pool(s, torch.Generator().manual_seed(0))
+        pool.it[:] = torch.as_tensor(k)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(0)
+            net = model.FNO(model.FNOConfig(4, 2, 1, 4))
+        return train_step(net, torch.optim.Adam(net.parameters(), lr=1e-3), pool, s, 0)
+
+    assert loss_at(0, 2.0) == loss_at(0, 0.0)
+    assert loss_at(5, 2.0) == pytest.approx(loss_at(5, 0.0), rel=1e-6, abs=1e-12)
+    mixed = [0, 0, 10, 10]                      # weights 1, 1, 3, 3: another mean
+    assert abs(loss_at(mixed, 2.0) - loss_at(mixed, 0.0)) > 1e-6
+    with pytest.raises(ValueError, match="iter_weight"):
+        TrainSettings(iter_weight=-1.0)
+    with pytest.raises(ValueError, match="iter_weight"):
+        TrainSettings(iter_weight=float("nan"))
 
 
 def test_rollout_perturbation_moves_free_vertices_only():
