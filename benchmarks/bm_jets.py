@@ -245,7 +245,7 @@ def main(argv=None) -> int:
                     "python": sys.version.split()[0]},
         "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "command": " ".join(["python", "benchmarks/bm_jets.py"] + [
-            "SCAN_DIR" if i > 0 and a_ == args.scan_dir and argv_[i - 1] == "--scan-dir"
+            {"--scan-dir": "SCAN_DIR", "--out": "OUT"}.get(argv_[i - 1], a_) if i > 0
             else a_ for i, a_ in enumerate(argv_)]),
         "load_average_start": list(os.getloadavg()),
         "versions": _versions(),
@@ -295,13 +295,13 @@ def main(argv=None) -> int:
         print_robustness(record["robustness"])
     record["load_average_end"] = list(os.getloadavg())
     path = out_dir / "bm_jets.json"
+    provenance = {k: record[k] for k in ("date_utc", "command", "quick", "load_average_start",
+                                         "load_average_end")}
+    record["section_runs"] = {sec: provenance for sec in sorted(sections)}
     if path.exists() and sections != {"speed", "accuracy", "parsimony", "robustness"}:
         with open(path) as fh:  # keep the parts of an earlier run that were not re-run
             old = json.load(fh)
-        for key in ("speed_reference", "accuracy", "parsimony", "robustness",
-                    "robustness_legend", "scans", "auto_vs_best"):
-            if key in old and not record.get(key):
-                record[key] = old[key]
+        merge_sections(record, old)
     with open(path, "w") as fh:
         json.dump(record, fh, indent=1, default=_json_default)
     pngs = []
@@ -323,6 +323,29 @@ def main(argv=None) -> int:
         pngs.append(out_dir / "bm_jets_scans.png")
     print(f"wrote {path}" + "".join(f" and {p}" for p in pngs))
     return 0
+
+
+def merge_sections(record: dict, old: dict) -> dict:
+    """Keep in ``record`` the sections of an earlier record ``old`` that this run left out.
+
+    Each kept section keeps the provenance (date, command, quick flag, load) of the run that
+    measured it, in ``record["section_runs"]``; a section from a record written before the
+    provenance was kept is marked ``{"date_utc": "unrecorded"}``. ``record`` is changed in
+    place and returned.
+    """
+    parts = {"speed": ("speed_reference",), "accuracy": ("accuracy", "auto_vs_best"),
+             "parsimony": ("parsimony",), "robustness": ("robustness", "robustness_legend"),
+             "scans": ("scans",)}
+    runs = record.setdefault("section_runs", {})
+    old_runs = old.get("section_runs", {})
+    for sec, keys in parts.items():
+        if sec in runs or not any(k in old for k in keys):
+            continue
+        for key in keys:
+            if key in old and not record.get(key):
+                record[key] = old[key]
+        runs[sec] = old_runs.get(sec, {"date_utc": "unrecorded"})
+    return record
 
 
 def _versions():

@@ -43,10 +43,11 @@ is processed in nor on the unit. The curvatures (and ``order``, ``n_neighbors``,
 fixed setting chosen for it (with ``order="auto"`` possibly a plane), the curvatures' signs
 and directions following it. Clean data get a 4-jet on small neighbourhoods, noisy data wider
 ones and lower orders (figures: README, Performance). With both ``k="auto"`` and
-``order="auto"`` the normals are then checked once per cloud against the default setting's
-(``k=20``, order 2) on held-out points (:mod:`polygeo._estimate_check`): where the default's
-tangent planes predict them clearly better (real scans with fine detail), its normals are
-returned instead (the curvatures keep theirs, signs following).
+``order="auto"`` the normals are then checked once per cloud against two fixed settings, the
+default (``k=20``, order 2) and order 2 at the widest size tried, on held-out points
+(:mod:`polygeo._estimate_check`): where one's tangent planes predict them clearly better (the
+default on real scans with fine detail, the widest fit under noise comparable to the point
+spacing), its normals are returned instead (the curvatures keep theirs, signs following).
 
 Measured choices. ``max_cond`` defaults to ``MAX_COND = {1: 1e3, 2: 1e3, 3: 1e4, 4: 1e5}``:
 well-spread 20-neighbourhoods measure about 6-30 at order 2 (up to a few 1e3 at order 4);
@@ -74,7 +75,7 @@ import torch
 from . import jets
 from ._diffgeo_numba import jet_geometry
 from ._estimate_auto import fit_auto
-from ._estimate_check import check_default
+from ._estimate_check import check_normals
 from ._estimate_output import extras, non_manifold_status, oriented_outputs
 from ._estimate_stages import (
     AUTO_K_CANDIDATES,
@@ -312,7 +313,8 @@ def differential_quantities(
         doubles the curvature error (module docstring, "Measured choices").
     normal_check : bool
         With ``k="auto", order="auto"``: check the normals once per cloud against the
-        default's on held-out points (module docstring; ~2x the time). Tiled runs: False.
+        default's and the widest order-2 fit's on held-out points (module docstring; ~2x
+        the time). Tiled runs: False.
 
     Returns
     -------
@@ -373,8 +375,8 @@ def _fit_points(pts_t: torch.Tensor, hoods: Neighbourhoods, out: Any, s: Setting
     """
     if _auto_compiled(s):  # automatic order / size on one k-NN list: two passes
         fit_auto(hoods, out, settings=s)
-        if s.k == "auto" and s.order == "auto" and s.normal_check:  # against the default
-            check_default(hoods.P, hoods.finite, out, s)
+        if s.k == "auto" and s.order == "auto" and s.normal_check:  # default, widest
+            check_normals(hoods.P, hoods.finite, out, s)
         return None
     parts = [] if s.use_torch else None
     for q in hoods.chunks(s.batch_size, s.progress):

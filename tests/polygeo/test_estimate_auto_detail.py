@@ -216,7 +216,7 @@ def test_normal_noise_from_the_narrowest_fits_on_fine_detail(monkeypatch, seed):
     default = rms_angle(differential_quantities(P, k=20, order=2, orient="none"), normals,
                         inner)
     # the per-point choice itself (no held-out check against the default, _estimate_check)
-    monkeypatch.setattr(E, "check_default", lambda *args: {})
+    monkeypatch.setattr(E, "check_normals", lambda *args: {})
     got = {}
     for narrowest in (True, False):
         if not narrowest:
