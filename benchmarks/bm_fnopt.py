@@ -51,7 +51,9 @@ from draping import viz
 from draping.fnopt import solvers
 from draping.fnopt.model import load_pretrained, solve_fnopt
 from draping.fnopt.simulate import DEFAULT_LR, SimSettings, frame_metrics, reference_rollout
+from polygeo.runs import record_path
 
+ROOT = Path(__file__).resolve().parents[1]
 OUT = Path(__file__).resolve().parent / "results"
 REFS = OUT / "fnopt_refs"
 
@@ -249,7 +251,7 @@ def part_validation(args, net) -> dict:
             r = _measure(s, _step("fnopt", 10, model), reference_rollout(s, REFS), 3)
             cd.append(r.get("e_cd", float("inf")))
             e3.append(r.get("e_3d", float("inf")))
-        rec["runs"].append({"weights": w, "e_cd": cd, "e_3d": e3,
+        rec["runs"].append({"weights": record_path(w, ROOT), "e_cd": cd, "e_3d": e3,
                             "gmean_e_cd": float(np.exp(np.mean(np.log(cd)))),
                             "worst_e_cd": max(cd),
                             "gmean_e_3d": float(np.exp(np.mean(np.log(e3))))})

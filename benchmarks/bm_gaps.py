@@ -85,13 +85,12 @@ PARSIMONY = 0.10
 
 
 def _portable(path) -> str:
-    """A path for the record without machine paths: a file of this repository relative to its
-    root (``draping/data/gaps_tshirt.pt``), one under the home directory written as ``~``."""
-    p = str(path)
-    root, home = str(ROOT.resolve()), str(Path.home())
-    if p.startswith(root + "/"):
-        return p[len(root) + 1:]
-    return "~" + p[len(home):] if p.startswith(home + "/") else p
+    """A path for the record without machine paths (:func:`polygeo.runs.record_path`): a file
+    of this repository relative to its root (``draping/data/gaps_tshirt.pt``), one under the
+    home directory written as ``~``, any other as ``.../<folder>/<name>``."""
+    from polygeo.runs import record_path
+
+    return record_path(path, ROOT.resolve())
 
 
 def _recorded(path: str) -> Path:

@@ -41,9 +41,12 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
 sys.path.insert(0, str(HERE))
 
 from run_env import environment, finish  # noqa: E402
+
+from polygeo.runs import record_path  # noqa: E402
 
 #: Body parts a contact is attributed to (the dominant bone of the closest body face).
 PARTS = ("torso", "legL", "legR", "armL", "armR")
@@ -327,8 +330,8 @@ def main(argv=None) -> int:
                   flush=True)
         n = sum(r["inside_vertex_frames"] for r in rows)
         tot = sum(len(r["per_frame"]) for r in rows) * int(m.template.shape[0])
-        res["models"][label] = {"model": str(path), "eps_c": 100.0 * n / tot, "cases": rows,
-                                "loss_optimum": opt}
+        res["models"][label] = {"model": record_path(path, ROOT), "eps_c": 100.0 * n / tot,
+                                "cases": rows, "loss_optimum": opt}
         for o in opt:
             print(f"{label:10s} {o['case']:16s} frame {o['frame']}: inside {o['inside_model']}"
                   f" -> loss minimiser {o['inside_optimum']}"

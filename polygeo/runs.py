@@ -17,6 +17,8 @@
 * :class:`JsonlLog`: one JSON record per line, flushed at each record; its reader ignores a
   torn last line (a process killed in the middle of a write).
 * :func:`progress`: a tqdm bar that can be quieted.
+* :func:`record_path`: how a record (a benchmark's JSON, a shipped model's) names a file
+  without the machine's paths.
 
 torch is imported by the checkpoint functions only, so that the file helpers stay light.
 """
@@ -60,6 +62,7 @@ __all__ = [
     "read_jsonl",
     "truncate_jsonl",
     "progress",
+    "record_path",
 ]
 
 #: Value of the ``format`` field of a checkpoint's header.
@@ -110,6 +113,39 @@ def _fsync_dir(folder: Path) -> None:
         pass
     finally:
         os.close(fd)
+
+
+def record_path(path: str | os.PathLike, root: str | os.PathLike | None = None) -> str:
+    """How a record names a file, without the machine's file system.
+
+    An absolute path under ``root`` (a repository) becomes relative to it
+    (``draping/data/gaps_tshirt.pt``), one under the home directory ``~/...``, any other
+    absolute path ``.../<folder>/<name>`` (which run it was, not where it lay). A relative
+    path, or a word that is not a path, is returned as it is.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The file (or any command-line word).
+    root : str or path-like, optional
+        The folder whose files are named relative to it.
+
+    Returns
+    -------
+    str
+    """
+    p = os.fspath(path)
+    if not os.path.isabs(p):
+        return p
+    p = os.path.normpath(p)
+    for base, prefix in ((root, ""), (Path.home(), "~/")):
+        if base is None:
+            continue
+        base = os.path.normpath(os.path.abspath(os.fspath(base)))
+        if p.startswith(base + os.sep):
+            return prefix + p[len(base) + 1:]
+    parts = Path(p).parts[1:]
+    return ".../" + "/".join(parts[-2:]) if len(parts) > 1 else p
 
 
 def atomic_write(path: str | os.PathLike, write_fn: Callable[[IO[bytes]], Any]) -> Path:

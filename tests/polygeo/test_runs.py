@@ -307,3 +307,19 @@ def test_progress_quiet_and_counts(capsys):
     assert list(bar) == [0, 1, 2]
     bar.close()
     assert "auto" not in capsys.readouterr().err
+
+
+def test_record_path_names_files_without_the_machines_paths(tmp_path, monkeypatch):
+    from polygeo.runs import record_path
+
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    repo = tmp_path / "repo"
+    assert record_path(repo / "draping" / "data" / "m.pt", repo) == "draping/data/m.pt"
+    assert record_path(tmp_path / "home" / ".cache" / "m.pt", repo) == "~/.cache/m.pt"
+    assert record_path("/scratch/run7/seed1/model.pt", repo) == ".../seed1/model.pt"
+    assert record_path("/scratch/run7/../run8/model.pt") == ".../run8/model.pt"  # normalised
+    # relative paths and words that are not paths are left alone; a repo path's prefix is not
+    # taken for the repo
+    assert record_path("RUN/model.pt", repo) == "RUN/model.pt"
+    assert record_path("--steps") == "--steps"
+    assert record_path(str(repo) + "-old/m.pt", repo) == ".../repo-old/m.pt"
