@@ -756,8 +756,10 @@ def main(argv=None) -> dict:
     ev_ = Evaluator(cases, cache)
     args.out.mkdir(parents=True, exist_ok=True)
     jp = args.out / "bm_gaps.json"
-    stamp = {"command": "python benchmarks/bm_gaps.py " + " ".join(
-        _portable(a) for a in (sys.argv[1:] if argv is None else argv)),
+    from polygeo.runs import record_command
+
+    stamp = {"command": "python benchmarks/bm_gaps.py " + record_command(
+        sys.argv[1:] if argv is None else argv, ROOT.resolve()),
         "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     new = {}
     runs = {"methods": section_methods, "strain": section_strain,

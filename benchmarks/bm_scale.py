@@ -43,6 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
+from polygeo.runs import record_command
+
 HERE = Path(__file__).resolve().parent
 
 
@@ -416,7 +418,8 @@ def main(argv=None) -> int:
             print(json.dumps(r), flush=True)
     if args.generate:
         return 0
-    meta = {"command": " ".join([Path(sys.executable).name, *sys.argv]),
+    meta = {"command": record_command([Path(sys.executable).name, *sys.argv],
+                                      Path(__file__).resolve().parents[1]),
             "machine": platform.platform(), "cpus": os.cpu_count(),
             "note": "shared, busy 2-core machine: timings are noisy; cpu_s is user + system"}
     path = out / "bm_scale.json"

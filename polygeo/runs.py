@@ -63,6 +63,7 @@ __all__ = [
     "truncate_jsonl",
     "progress",
     "record_path",
+    "record_command",
 ]
 
 #: Value of the ``format`` field of a checkpoint's header.
@@ -146,6 +147,30 @@ def record_path(path: str | os.PathLike, root: str | os.PathLike | None = None) 
             return prefix + p[len(base) + 1:]
     parts = Path(p).parts[1:]
     return ".../" + "/".join(parts[-2:]) if len(parts) > 1 else p
+
+
+def record_command(words: Iterable[str], root: str | os.PathLike | None = None) -> str:
+    """A command line for a record: its words joined, every path in them by :func:`record_path`.
+
+    Paths inside ``--option=value`` words and comma-separated lists are mapped part by part.
+
+    Parameters
+    ----------
+    words : iterable of str
+        The command's words (e.g. ``["polygeo", *sys.argv[1:]]``).
+    root : str or path-like, optional
+        The folder whose files are named relative to it.
+
+    Returns
+    -------
+    str
+    """
+
+    def one(word: str) -> str:
+        head, eq, value = word.partition("=") if word.startswith("-") else ("", "", word)
+        return head + eq + ",".join(record_path(p, root) if p else p for p in value.split(","))
+
+    return " ".join(one(os.fspath(w)) for w in words)
 
 
 def atomic_write(path: str | os.PathLike, write_fn: Callable[[IO[bytes]], Any]) -> Path:

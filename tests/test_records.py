@@ -15,7 +15,8 @@ RECORDS = sorted(
 # absolute paths of a user's or a build machine's file system (a record names repository files
 # relative to its root, cached files under ~ and other files as .../<folder>/<name>:
 # polygeo.runs.record_path)
-MACHINE = re.compile(r'"(/(?:home|root|work|tmp|Users|mnt|private|var/folders)/[^"]*)"')
+MACHINE = re.compile(r'(?<![\w.~/-])(/(?:home|root|work|tmp|Users|mnt|private|var/folders)/'
+                     r'[^\s,"()]*)')
 
 
 @pytest.mark.parametrize("path", RECORDS, ids=lambda p: str(p.relative_to(ROOT)))

@@ -84,7 +84,7 @@ def run_train(args: argparse.Namespace) -> int:
     torch.save(res["model"].state_dict(), out / "fnopt_model.pt")
     record = {"config": {k: s_ for k, s_ in asdict(res["model"].config).items()},
               "settings": res["settings"], "parameters": res["parameters"],
-              "command": "polygeo train-fnopt " + " ".join(sys.argv[2:]),
+              "command": "polygeo train-fnopt " + runs.record_command(sys.argv[2:]),
               "minutes": res["minutes"], "cpu_minutes": res["cpu_minutes"],
               "steps": res["step"], "finished": res["finished"],
               "val_subopt": res["val_subopt"], "history": hist,

@@ -172,7 +172,7 @@ def run_train(args: argparse.Namespace) -> int:
     import torch
 
     from draping.body import AnnyBody
-    from polygeo.runs import CheckpointError, atomic_write_json
+    from polygeo.runs import CheckpointError, atomic_write_json, record_command
 
     from .infer import load_model, save_model, time_inference
     from .train import train
@@ -186,7 +186,7 @@ def run_train(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if not args.resume and (out / "checkpoint.pt").exists():
         (out / "checkpoint.pt").unlink()
-    command = "polygeo " + " ".join(sys.argv[1:]) if sys.argv else ""
+    command = "polygeo " + record_command(sys.argv[1:]) if sys.argv else ""
     try:
         res = train(settings, out, minutes=args.minutes, steps=args.steps, resume=args.resume,
                     quiet=args.quiet, command=command)

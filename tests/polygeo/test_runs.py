@@ -323,3 +323,15 @@ def test_record_path_names_files_without_the_machines_paths(tmp_path, monkeypatc
     assert record_path("RUN/model.pt", repo) == "RUN/model.pt"
     assert record_path("--steps") == "--steps"
     assert record_path(str(repo) + "-old/m.pt", repo) == ".../repo-old/m.pt"
+
+
+def test_record_command_maps_paths_inside_options_and_lists(tmp_path, monkeypatch):
+    from polygeo.runs import record_command
+
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    words = ["--candidates", "shipped,/scratch/s1/model.pt", f"--out={tmp_path}/repo/res",
+             "--shape", "age=0.66,gender=0.8", "-o", "/scratch/run/OUT", "--steps", "800"]
+    got = record_command(words, tmp_path / "repo")
+    assert got == ("--candidates shipped,.../s1/model.pt --out=res --shape age=0.66,gender=0.8"
+                   " -o .../run/OUT --steps 800")
+    assert record_command([]) == ""
