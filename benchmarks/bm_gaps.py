@@ -83,7 +83,6 @@ PARSIMONY = 0.10
 # ------------------------------------------------------------------------------ models
 
 
-
 def _portable(path) -> str:
     """A path for the record without machine paths (:func:`polygeo.runs.record_path`): a file
     of this repository relative to its root (``draping/data/gaps_tshirt.pt``), one under the
