@@ -83,17 +83,20 @@ Z_MIN = 3.0
 REL_MIN = 0.01
 
 
+def _order2(s: Settings, size: int) -> Settings:
+    """Order 2 on ``size`` points (``k = size - 1``) with the other options of ``s``."""
+    return replace(s, k=size - 1, sizes=(size,), order=2,
+                   max_cond={2: s.max_cond.get(2, MAX_COND[2])}, progress=False)
+
+
 def default_settings(s: Settings) -> Settings:
     """The default setting (``k=DEFAULT_K``, order 2) with the other options of ``s``."""
-    return replace(s, k=DEFAULT_K, sizes=(DEFAULT_K + 1,), order=2,
-                   max_cond={2: s.max_cond.get(2, MAX_COND[2])}, progress=False)
+    return _order2(s, DEFAULT_K + 1)
 
 
 def widest_settings(s: Settings, n_points: int) -> Settings:
     """Order 2 at the widest size ``s`` tries (``max(s.sizes)`` points), on ``n_points``."""
-    size = max(min(max(s.sizes), n_points), 2)
-    return replace(s, k=size - 1, sizes=(size,), order=2,
-                   max_cond={2: s.max_cond.get(2, MAX_COND[2])}, progress=False)
+    return _order2(s, max(min(max(s.sizes), n_points), 2))
 
 
 def alternatives(s: Settings, n_points: int) -> list[tuple[str, Settings, float]]:

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from polygeo.checks import check_positive
+
 __all__ = ["TrainSettings", "HANDLE_DISTRIBUTIONS", "LAYOUTS", "MOTIONS", "OPTIMIZERS"]
 
 #: Handle layouts as fractional grid coordinates ``(row, col)`` in ``[0, 1]`` (row 0: top edge).
@@ -84,8 +86,7 @@ class TrainSettings:
     checkpoint_every: int = 500
 
     def __post_init__(self) -> None:
-        if not (self.iter_weight >= 0 and self.iter_weight < float("inf")):
-            raise ValueError(f"iter_weight: expected a finite float >= 0, got {self.iter_weight!r}")
+        check_positive(self.iter_weight, "iter_weight", strict=False)
         if self.step_rule != "subspace":
             raise ValueError(f"step_rule: expected 'subspace', got {self.step_rule!r}")
         if self.handles not in HANDLE_DISTRIBUTIONS:
