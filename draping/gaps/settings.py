@@ -256,7 +256,7 @@ class TrainSettings:
             check_positive(getattr(self, name), name)
         for name in ("hidden_std", "collision_eps", "grad_clip"):
             check_positive(getattr(self, name), name, strict=False)
-        if not (isinstance(self.replay, (int, float)) and 0.0 <= self.replay < 1.0):
+        if check_positive(self.replay, "replay", strict=False) >= 1.0:
             raise ValueError(f"replay: expected a probability in [0, 1), got {self.replay!r}")
         if not self.speeds or not all(math.isfinite(s) and s > 0 for s in self.speeds):
             raise ValueError(f"speeds: expected positive playback speeds, got {self.speeds}")

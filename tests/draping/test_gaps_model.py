@@ -127,9 +127,11 @@ def test_hard_example_replay(body):
     assert "replay" not in base.key_dict()
     s = base.replace(replay=0.5)
     assert s.key_dict()["replay"] == 0.5
-    for bad in (-0.1, 1.0, "x"):
+    for bad in (-0.1, 1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="replay"):
             base.replace(replay=bad)
+    with pytest.raises(TypeError, match="replay"):
+        base.replace(replay="x")
     tr = Trainer(s, body)
     assert all(tr.pick(k) == (*tr.batch(k), True) for k in range(20))  # nothing hard yet
     kept = [tr.note(k % 2, tr.batch(k)[1], float(k)) for k in range(REPLAY_MIN + 20)]
