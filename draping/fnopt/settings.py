@@ -33,7 +33,7 @@ MOTIONS = ("x", "y", "z", "xy", "xyz", "x-rev", "y-rev", "z-rev", "xy-rev", "xyz
 OPTIMIZERS = ("fnopt", "gd", "adam", "lbfgs", "reference")
 
 #: Handle distributions of the training pool (see :func:`draping.fnopt.train.random_handles`).
-HANDLE_DISTRIBUTIONS = ("random", "corners-interior")
+HANDLE_DISTRIBUTIONS = ("random", "corners-interior", "folding")
 
 
 @dataclass(frozen=True)
@@ -47,7 +47,8 @@ class TrainSettings:
     10 % of the best); with it (``fnopt_sweep_normal4.json``) the sweep's rule picks 32x4, which
     ties the shipped weights on the validation rollouts (one seed), so 16x8 stays; 7000 steps,
     handle sets drawn by :func:`random_handles`
-    (``handles="random"``; ``"corners-interior"`` was the distribution of the first weights),
+    (``handles="random"``; ``"corners-interior"`` was the distribution of the first weights;
+    ``"folding"`` draws half the sheets with a two-pin folding layout, an option),
     the subspace step (``step_rule``, the only rule: :func:`draping.fnopt.model.subspace_update`
     differentiated through) with the out-of-plane direction cut into its lowest 4 x 4 DCT modes
     and the rest (``normal=True, normal_split=4``): over three seeds each, better than without

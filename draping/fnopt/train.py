@@ -44,8 +44,8 @@ from .solvers import (
     solve_reference,
 )
 
-__all__ = ["TrainSettings", "HANDLE_DISTRIBUTIONS", "random_handles", "Pool", "train",
-           "validation_set", "evaluate"]
+__all__ = ["TrainSettings", "HANDLE_DISTRIBUTIONS", "random_handles", "folding_pair", "Pool",
+           "train", "validation_set", "evaluate"]
 
 
 def random_handles(gen: torch.Generator, res: int, kind: str = "random") -> torch.Tensor:
@@ -56,7 +56,9 @@ def random_handles(gen: torch.Generator, res: int, kind: str = "random") -> torc
     with probability 0.1 one of them grown into a run of 2 to ``res / 4`` vertices along its
     row or column; so the five named layouts are ordinary members of the distribution.
     ``"corners-interior"`` (the first shipped weights): the two top corners with probability
-    0.4, else 1 to 3 uniform points.
+    0.4, else 1 to 3 uniform points. ``"folding"``: with probability 0.5 a two-pin set that folds
+    the sheet between its pins (:func:`folding_pair`: opposite corners, points on opposite
+    edges, or two points at least half the grid apart), else a ``"random"`` draw.
 
     Raises
     ------
@@ -70,6 +72,10 @@ def random_handles(gen: torch.Generator, res: int, kind: str = "random") -> torc
         return float(torch.rand(1, generator=gen))
 
     m = res - 1
+    if kind == "folding":
+        if u() < 0.5:
+            return folding_pair(gen, res)
+        kind = "random"
     if kind == "corners-interior":
         if u() < 0.4:
             pts = [(0, 0), (0, m)]
@@ -96,6 +102,41 @@ def random_handles(gen: torch.Generator, res: int, kind: str = "random") -> torc
             rr, cc = (r0, c0 + k) if along_row else (r0 + k, c0)
             if rr <= m and cc <= m:
                 pts.append((rr, cc))
+    return torch.unique(torch.tensor(pts), dim=0)
+
+
+def folding_pair(gen: torch.Generator, res: int) -> torch.Tensor:
+    """Two pinned vertices ``(2, 2)`` (row, col) far apart on a ``res x res`` grid.
+
+    The layouts on which a sheet folds between its pins and an ``N = 10`` solve lags (the
+    diagonal, mid-edges and 2-pin random cases of ``bm_fnopt``): with equal probability two
+    opposite corners, one point on each of two opposite edges (each at 20-80 % along its edge,
+    mid-edges among them), or two uniform grid points at least ``(res - 1) / 2`` apart
+    (Chebyshev distance; the last of 20 draws if none is).
+
+    Raises
+    ------
+    ValueError
+        If ``res < 2``.
+    """
+    if res < 2:
+        raise ValueError(f"res: expected >= 2, got {res!r}")
+
+    def u() -> float:
+        return float(torch.rand(1, generator=gen))
+
+    m = res - 1
+    v = u()
+    if v < 1 / 3:
+        pts = [(0, 0), (m, m)] if u() < 0.5 else [(0, m), (m, 0)]
+    elif v < 2 / 3:
+        t1, t2 = (round((0.2 + 0.6 * u()) * m) for _ in range(2))
+        pts = [(t1, 0), (t2, m)] if u() < 0.5 else [(0, t1), (m, t2)]
+    else:
+        for _ in range(20):
+            pts = [(round(u() * m), round(u() * m)) for _ in range(2)]
+            if max(abs(pts[0][0] - pts[1][0]), abs(pts[0][1] - pts[1][1])) >= m / 2:
+                break
     return torch.unique(torch.tensor(pts), dim=0)
 
 
@@ -158,7 +199,7 @@ class Pool:
         else:
             axes = torch.eye(3)
             ax = axes[2] if float(self._u(1)) < 0.5 else axes[1]
-            if s.handles == "random" and float(self._u(1)) < 0.4:     # any axis
+            if s.handles in ("random", "folding") and float(self._u(1)) < 0.4:   # any axis
                 ax = torch.randn(3, generator=self.gen)
                 ax = ax / ax.norm()
             self.vec[i] = ax * (2 * self._u(1) - 1) * 0.5 * math.pi

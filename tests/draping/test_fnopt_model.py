@@ -278,3 +278,37 @@ def test_solve_fnopt_step_rules():
     assert l_sub <= float(p.loss(solvers.solve_pgd(p, 10))[0]) * (1 + 1e-6)
     with pytest.raises(ValueError, match="step"):
         model.solve_fnopt(net, p, 3, step="newton")
+
+
+def test_folding_handle_distribution_draws_far_apart_pairs_half_the_time():
+    from draping.fnopt.train import TrainSettings, folding_pair, random_handles
+
+    n, m = 32, 31
+    g = torch.Generator().manual_seed(0)
+    kinds = set()
+    for _ in range(600):
+        idx = folding_pair(g, n)
+        assert idx.shape == (2, 2) and int(idx.min()) >= 0 and int(idx.max()) <= m
+        assert int((idx[0] - idx[1]).abs().max()) >= m / 2          # Chebyshev distance
+        pins = {tuple(p) for p in idx.tolist()}
+        if pins in ({(0, 0), (m, m)}, {(0, m), (m, 0)}):
+            kinds.add("opposite corners")
+        elif {c for _, c in pins} == {0, m} or {r for r, _ in pins} == {0, m}:
+            kinds.add("opposite edges")
+        else:
+            kinds.add("far points")
+    assert kinds == {"opposite corners", "opposite edges", "far points"}
+
+    def far_pairs(kind: str) -> float:
+        gen = torch.Generator().manual_seed(1)
+        draws = [random_handles(gen, n, kind) for _ in range(2000)]
+        return sum(d.shape[0] == 2 and int((d[0] - d[1]).abs().max()) >= m / 2
+                   for d in draws) / len(draws)
+
+    p_random, p_folding = far_pairs("random"), far_pairs("folding")
+    assert p_random < 0.35                                   # 0.15 corners + chance pairs
+    assert abs(p_folding - (0.5 + 0.5 * p_random)) < 0.05    # half the draws are folding pairs
+    assert TrainSettings().handles == "random"               # the shipped weights' pool
+    assert TrainSettings(handles="folding").handles == "folding"
+    with pytest.raises(ValueError, match="res"):
+        folding_pair(g, 1)
