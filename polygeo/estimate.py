@@ -36,7 +36,9 @@ Automatic settings (``k="auto"`` / ``order="auto"`` on a k-NN list without weigh
 :mod:`polygeo._estimate_auto`): variances from the fits' residuals, bias from how each quantity
 drifts with the neighbourhood size (for H also the attenuation by noise that small
 neighbourhoods suffer), sizes capped where the fits of nested neighbourhoods stop agreeing
-within ``AUTO_K_GAMMA`` standard deviations (ICI); every statistic pooled (median) over the
+within ``AUTO_K_GAMMA`` standard deviations (ICI; for the curvatures not where the noise is
+large against the neighbourhood, whose attenuation of H the ICI would read as a bias setting
+in); every statistic pooled (median) over the
 ``AUTO_K_SMOOTH`` nearest neighbours, so that the choice depends neither on the chunk a point
 is processed in nor on the unit. The curvatures (and ``order``, ``n_neighbors``, ``frame``,
 ``coeffs``) are those of the fixed ``(k, order)`` chosen for them; the normal is that of the

@@ -117,7 +117,8 @@ def test_a_setting_most_neighbours_cannot_fit_is_not_chosen():
     the median of the 2, which made it look best)."""
     sizes = np.array([13, 25])
     n = 5
-    stats = {"size": np.ones((n, 1), dtype=np.int64), "var": np.ones((n, 1, 2, 2))}
+    stats = {"size": np.ones((n, 1), dtype=np.int64), "var": np.ones((n, 1, 2, 2)),
+             "u": np.zeros((n, 1, 2))}
     table = np.ones((1, 2, 2, n), dtype=np.float32)
     table[0, 0, :, :] = np.nan
     table[0, 0, :, :2] = 1e-6
@@ -125,6 +126,28 @@ def test_a_setting_most_neighbours_cannot_fit_is_not_chosen():
     score = ea.choose(stats, table, pool, sizes, (2,))
     order_i, k = ea.best_setting(score["normal"], sizes)
     assert k[0] == 25
+
+
+@pytest.mark.parametrize("u, curvature_size", [(0.0, 13), (0.5 * ea._U_LIFT, 13),
+                                                 (2.0 * ea._U_LIFT, 49)])
+def test_the_ici_cap_of_the_curvatures_is_lifted_under_large_noise(u, curvature_size):
+    """The pooled ICI size caps the normal's sizes always, the curvatures' only where the
+    noise share u = sigma^2 / <r^2> at that size is below _U_LIFT (H's attenuation, which
+    falls with the size, would read as a bias setting in)."""
+    sizes = np.array([13, 25, 49])
+    n = 5
+    stats = {"size": np.zeros((n, 1), dtype=np.int64), "var": np.ones((n, 1, 3, 2)),
+             "u": np.full((n, 1, 3), u)}
+    table = np.ones((1, 3, 2, n), dtype=np.float32)
+    table[0, 2] = 1e-3  # the widest size has the least error, for both quantities
+    pool = np.arange(n)[None, :]
+    score = ea.choose(stats, table, pool, sizes, (2,))
+    assert ea.best_setting(score["normal"], sizes)[1][0] == 13  # capped at the ICI size
+    assert ea.best_setting(score["curvature"], sizes)[1][0] == curvature_size
+    stats["size"][:] = 2  # no cap: both take the widest
+    score = ea.choose(stats, table, pool, sizes, (2,))
+    assert ea.best_setting(score["normal"], sizes)[1][0] == 49
+    assert ea.best_setting(score["curvature"], sizes)[1][0] == 49
 
 
 def test_weak_floor_follows_the_truncation_scaling():
