@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import asdict
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -48,6 +49,11 @@ __all__ = ["TrainSettings", "HANDLE_DISTRIBUTIONS", "random_handles", "folding_p
            "train", "validation_set", "evaluate"]
 
 
+def _uniform(gen: torch.Generator) -> float:
+    """One uniform draw in ``[0, 1)`` from ``gen`` (the handle distributions' coin)."""
+    return float(torch.rand(1, generator=gen))
+
+
 def random_handles(gen: torch.Generator, res: int, kind: str = "random") -> torch.Tensor:
     """A random set of pinned vertices ``(K, 2)`` (row, col) on a ``res x res`` grid.
 
@@ -68,9 +74,7 @@ def random_handles(gen: torch.Generator, res: int, kind: str = "random") -> torc
     if kind not in HANDLE_DISTRIBUTIONS:
         raise ValueError(f"handles: expected one of {list(HANDLE_DISTRIBUTIONS)}, got {kind!r}")
 
-    def u() -> float:
-        return float(torch.rand(1, generator=gen))
-
+    u = partial(_uniform, gen)
     m = res - 1
     if kind == "folding":
         if u() < 0.5:
@@ -122,9 +126,7 @@ def folding_pair(gen: torch.Generator, res: int) -> torch.Tensor:
     if res < 2:
         raise ValueError(f"res: expected >= 2, got {res!r}")
 
-    def u() -> float:
-        return float(torch.rand(1, generator=gen))
-
+    u = partial(_uniform, gen)
     m = res - 1
     v = u()
     if v < 1 / 3:
