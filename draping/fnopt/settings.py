@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from polygeo.checks import check_positive
+from polygeo.checks import check_int, check_positive
 
 __all__ = ["TrainSettings", "HANDLE_DISTRIBUTIONS", "LAYOUTS", "MOTIONS", "OPTIMIZERS"]
 
@@ -59,6 +59,15 @@ class TrainSettings:
     ``k``-th inner iteration weighs ``1 + iter_weight k / 10`` in the training loss (0, the
     shipped weights: every iteration equally; > 0 favours the late iterations, those that decide
     the ``N = 10`` iterate).
+
+    ``rollout_*`` and ``init``: an optional fine-tuning phase after the ``steps`` pool steps
+    (:mod:`draping.fnopt.tbptt`): ``rollout_steps`` steps (0, the shipped weights: none), each
+    through ``rollout_frames`` consecutive frames of the model's own rollout of
+    ``rollout_batch`` pool sheets with ``rollout_iters`` inner iterations per frame, the graph
+    kept across the frame boundaries; each frame's loss is its sub-optimality against
+    ``rollout_extra`` more classical iterations; Adam at ``rollout_lr`` (cosine to a tenth).
+    ``init``: start from these weights instead of a seeded initialisation (``"shipped"``: the
+    package's; ``""``: none); with ``steps=0`` only the fine-tuning runs.
     """
 
     width: int = 16
@@ -82,12 +91,24 @@ class TrainSettings:
     normal: bool = True
     normal_split: int = 4
     iter_weight: float = 0.0
+    rollout_steps: int = 0
+    rollout_frames: int = 3
+    rollout_iters: int = 10
+    rollout_batch: int = 4
+    rollout_extra: int = 20
+    rollout_lr: float = 1e-4
+    init: str = ""
     seed: int = 0
     eval_every: int = 1000
     checkpoint_every: int = 500
 
     def __post_init__(self) -> None:
         check_positive(self.iter_weight, "iter_weight", strict=False)
+        check_positive(self.rollout_lr, "rollout_lr")
+        for name in ("steps", "rollout_steps", "rollout_extra"):
+            check_int(getattr(self, name), name, low=0)
+        for name in ("rollout_frames", "rollout_iters", "rollout_batch"):
+            check_int(getattr(self, name), name, low=1)
         if self.step_rule != "subspace":
             raise ValueError(f"step_rule: expected 'subspace', got {self.step_rule!r}")
         if self.handles not in HANDLE_DISTRIBUTIONS:

@@ -44,9 +44,10 @@ from .solvers import (
     solve_lbfgs,
     solve_reference,
 )
+from .tbptt import rollout_train_step
 
 __all__ = ["TrainSettings", "HANDLE_DISTRIBUTIONS", "random_handles", "folding_pair", "Pool",
-           "train", "validation_set", "evaluate"]
+           "train", "initial_weights", "validation_set", "evaluate"]
 
 
 def _uniform(gen: torch.Generator) -> float:
@@ -265,6 +266,31 @@ def _lr(s: TrainSettings, step: int) -> float:
     return s.lr_final + (s.lr - s.lr_final) * c
 
 
+def _rollout_lr(s: TrainSettings, step: int) -> float:
+    """The fine-tuning phase's rate at its ``step``: cosine from ``rollout_lr`` to a tenth."""
+    c = 0.5 * (1 + math.cos(math.pi * min(step / max(s.rollout_steps, 1), 1.0)))
+    return s.rollout_lr * (0.1 + 0.9 * c)
+
+
+def initial_weights(s: TrainSettings, model: FNO) -> None:
+    """Load ``s.init`` (``"shipped"``: the package's weights; a path) into ``model``.
+
+    Raises
+    ------
+    ValueError
+        If the weights' config (their JSON record) is not ``model``'s.
+    FileNotFoundError
+        If the weights or their record are missing.
+    """
+    from .model import load_pretrained
+
+    src = load_pretrained(None if s.init == "shipped" else s.init)
+    if src.config != model.config:
+        raise ValueError(f"init: weights of config {src.config} do not fit the settings' "
+                         f"config {model.config}")
+    model.load_state_dict(src.state_dict())
+
+
 def train_step(model: FNO, opt, pool: Pool, s: TrainSettings, step: int) -> float:
     """One meta-training step on a random batch of the pool; returns the mean loss."""
     ids = torch.randperm(s.pool, generator=pool.gen)[:s.batch]
@@ -385,7 +411,11 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
     with torch.random.fork_rng(devices=[]):     # seeded initial weights; the caller's global
         torch.manual_seed(s.seed)               # RNG state is restored (nothing else draws
         model = FNO(cfg)                        # from it: the pool has its own generator)
+    if s.init:
+        initial_weights(s, model)
     opt = torch.optim.Adam(model.parameters(), lr=s.lr)
+    opt2 = torch.optim.Adam(model.parameters(), lr=s.rollout_lr)    # the fine-tuning phase's
+    total = s.steps + s.rollout_steps
     fp = runs.fingerprint(asdict(s))
     ck = runs.resume_state(out, fp)
     history: list = []
@@ -398,6 +428,8 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
     else:
         model.load_state_dict(ck.tensors["model"])
         opt.load_state_dict(ck.tensors["opt"])
+        if "opt2" in ck.tensors:
+            opt2.load_state_dict(ck.tensors["opt2"])
         pool = Pool.__new__(Pool)
         pool.s, pool.gen = s, gen
         for k, v in ck.tensors["pool"].items():
@@ -413,7 +445,7 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
     log(f"validation set: {len(val)} steps ({time.perf_counter() - t_val:.0f} s); "
         f"model {n_parameters(model)} parameters")
     jlog = runs.JsonlLog(out / "log.jsonl")
-    bar = runs.progress(total=s.steps, initial=step, desc="train-fnopt", quiet=quiet)
+    bar = runs.progress(total=total, initial=step, desc="train-fnopt", quiet=quiet)
     t0 = time.perf_counter() - elapsed
     c0 = time.process_time() - cpu_elapsed
     ema = None
@@ -422,7 +454,7 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
 
     def save():
         runs.save_checkpoint(out / runs.CHECKPOINT_NAME, {
-            "model": model.state_dict(), "opt": opt.state_dict(),
+            "model": model.state_dict(), "opt": opt.state_dict(), "opt2": opt2.state_dict(),
             "pool": {k: getattr(pool, k) for k in pool_keys},
             "gen": gen.get_state()},
             {"fingerprint": fp, "step": step, "history": history,
@@ -430,22 +462,30 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
              "settings": asdict(s)})
 
     stopped = False
-    while step < s.steps:
-        loss = train_step(model, opt, pool, s, step)
+    while step < total:
+        if step < s.steps:
+            loss = train_step(model, opt, pool, s, step)
+        else:                           # the rollout-level fine-tuning (rollout_steps > 0)
+            if step == s.steps:
+                ema = None              # another loss: its average starts afresh
+            loss = rollout_train_step(model, opt2, pool, s.rollout_frames, s.rollout_iters,
+                                      s.rollout_batch, s.rollout_extra,
+                                      _rollout_lr(s, step - s.steps))
         step += 1
         ema = loss if ema is None else 0.98 * ema + 0.02 * loss
         bar.update(1)
         if step % 50 == 0:
             bar.set_postfix(loss=f"{ema:.3f}")
-        if step % s.eval_every == 0 or step == s.steps:
+        if step % s.eval_every == 0 or step == total:
             v = evaluate(model, val)
-            rec = {"step": step, "loss_ema": ema, "val_subopt": v,
+            rec = {"step": step, "phase": "pool" if step <= s.steps else "rollout",
+                   "loss_ema": ema, "val_subopt": v,
                    "minutes": (time.perf_counter() - t0) / 60,
                    "cpu_minutes": (time.process_time() - c0) / 60}
             history.append(rec)
             jlog.append(rec)
             log(f"step {step}: loss {ema:.4f}  validation sub-optimality (N=10) {v:.4f}")
-        if step % s.checkpoint_every == 0 or step == s.steps:
+        if step % s.checkpoint_every == 0 or step == total:
             save()
         if max_minutes is not None and (time.perf_counter() - t0) > 60 * max_minutes:
             save()
