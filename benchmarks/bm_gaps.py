@@ -27,6 +27,10 @@ Sections (each a function):
 * ``given``: models trained elsewhere on their own budget (``--extra-model PATH``, e.g. the
   weights h20 shipped), scored on the same cases and reported beside the methods' rows,
   marked ``not_equal_budget``.
+* ``shipped``: only the shipped GAPS model of each garment, scored again; its row in the
+  record's ``methods`` table is replaced (label and budget mark kept), the other rows are
+  left as they were (for a new shipped model, without retraining the compared ones). The
+  held-back references must be the record's (their eps figures are checked).
 * ``charts``: the PNGs, from the JSON.
 
 Several runs may share one JSON (one garment each, say, run side by side): sections are
@@ -50,7 +54,6 @@ machine this ran on was shared, so wall times include waiting for a core.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import sys
@@ -70,9 +73,10 @@ sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parent / "datasets"))
 
 import make_gaps_eval as ev  # noqa: E402
+from bm_gaps_record import merge_results  # noqa: E402
 from run_env import environment, finish  # noqa: E402
 
-SECTIONS = ("methods", "strain", "ablations", "sweep", "given", "charts")
+SECTIONS = ("methods", "strain", "ablations", "sweep", "given", "shipped", "charts")
 METHOD_NAMES = ("gaps", "snug", "ncs")
 ABLATIONS = ("schedule", "one", "none")
 SWEEP = ((32, 1), (64, 1), (64, 2), (128, 2), (256, 2), (128, 4))
@@ -434,6 +438,21 @@ def section_given(args, ev_: Evaluator, need: dict, cache: Path) -> dict:
     return out
 
 
+def section_shipped(args, ev_: Evaluator, need: dict, cache: Path) -> dict:
+    """The shipped GAPS model of each garment alone, with its references' summary."""
+    from draping.gaps import shipped_model_path
+
+    out = {}
+    for g in args.garments:
+        p = shipped_model_path(g)
+        if not p.is_file():
+            raise ValueError(f"garments: no shipped GAPS model for {g!r}")
+        row = model_record(p, ev_, "gaps (shipped)")
+        out[g] = {"row": row, "reference": ev_.reference_summary(g)}
+        _print_rows(g + " (shipped, re-scored)", [row])
+    return out
+
+
 def section_ablations(args, ev_: Evaluator, need: dict, cache: Path) -> dict:
     """GAPS with the k_ext schedule, k_ext = 1, and no L_inext."""
     from draping.gaps import shipped_model_path
@@ -634,36 +653,6 @@ def strip(args, ev_: Evaluator, res: dict, cache: Path, path: Path) -> None:
 # -------------------------------------------------------------------------------- main
 
 
-def merge_results(path: Path, new: dict, settings: dict) -> dict:
-    """Merge sections (methods / ablations per garment) into the JSON at ``path``, locked.
-
-    Several runs (one per garment, say) may write the same file; each keeps the others'.
-    """
-    import fcntl
-    import tempfile
-
-    from polygeo.runs import atomic_write_json
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(Path(tempfile.gettempdir()) / f"{path.name}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        res = json.loads(path.read_text()) if path.is_file() else {}
-        for name, v in new.items():
-            if name == "sweep":
-                res[name] = v
-            elif name == "given":  # rows beside the methods' of each garment
-                for g, rows in v.items():
-                    res.setdefault("methods", {}).setdefault(g, {})["given"] = rows
-            else:
-                for g, val in v.items():
-                    keep = res.setdefault(name, {}).get(g, {}).get("given")
-                    res[name][g] = {**({"given": keep} if keep else {}), **val}
-        res.setdefault("runs", []).append(settings)
-        res["settings"] = settings
-        atomic_write_json(path, res)
-    return res
-
-
 def keep_pairs(cases: list, pairs) -> list:
     """The cases whose ``motion/shape_seed`` is in ``pairs`` (all of them when None).
 
@@ -762,7 +751,8 @@ def main(argv=None) -> dict:
         "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     new = {}
     runs = {"methods": section_methods, "strain": section_strain,
-            "ablations": section_ablations, "sweep": section_sweep, "given": section_given}
+            "ablations": section_ablations, "sweep": section_sweep, "given": section_given,
+            "shipped": section_shipped}
     for name, fn in runs.items():
         if name in args.sections:
             r = fn(args, ev_, need, cache)
@@ -770,6 +760,8 @@ def main(argv=None) -> dict:
                 new[name] = {**r, **stamp}
             elif name == "given":
                 new[name] = {g: [{**x, **stamp} for x in v] for g, v in r.items()}
+            elif name == "shipped":
+                new[name] = {g: {**v, "row": {**v["row"], **stamp}} for g, v in r.items()}
             else:
                 new[name] = {g: {**v, **stamp} for g, v in r.items()}
     settings = {

@@ -311,3 +311,39 @@ def test_contacts_judge_a_model_by_its_own_training_loss():
     assert ts.model == dress.settings
     dress.record = {}
     assert gc.train_settings_of(dress) == TrainSettings(model=dress.settings)
+
+
+def test_shipped_section_replaces_only_the_shipped_row(tmp_path, monkeypatch):
+    """``--sections shipped``: merged into a record, the re-scored shipped row replaces the
+    old one (keeping its label and budget mark) and every other row, the given ones
+    included, stays; a re-score against other references, or a record without a shipped
+    row, is refused."""
+    import json
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    rec = _load("bm_gaps_record", ROOT / "benchmarks" / "bm_gaps_record.py")
+    ref = {"eps_e_mean": 1.5, "eps_a_mean": 2.0, "eps_c_mean": 0.0}
+    old = {"methods": {"dress": {
+        "models": [{"label": "gaps", "eps_c_mean": 0.01},
+                   {"label": "ncs", "eps_c_mean": 0.0},
+                   {"label": "gaps (shipped, own budget)", "eps_c_mean": 0.5,
+                    "not_equal_budget": True}],
+        "given": [{"label": "gaps (8000 steps, given)", "eps_c_mean": 0.2}],
+        "reference": {**ref, "cpu_s_per_frame_median": 3.0}}}}
+    path = tmp_path / "bm_gaps.json"
+    path.write_text(json.dumps(old))
+    monkeypatch.setattr("tempfile.gettempdir", lambda: str(tmp_path))
+    new = {"row": {"label": "gaps (shipped)", "eps_c_mean": 0.25},
+           "reference": {**ref, "cpu_s_per_frame_median": 9.0}}  # timings may differ
+    res = rec.merge_results(path, {"shipped": {"dress": new}}, {"command": "x"})
+    rows = res["methods"]["dress"]["models"]
+    assert rows[:2] == old["methods"]["dress"]["models"][:2]
+    assert rows[2] == {"label": "gaps (shipped, own budget)", "eps_c_mean": 0.25,
+                       "not_equal_budget": True}
+    assert res["methods"]["dress"]["given"] == old["methods"]["dress"]["given"]
+    assert json.loads(path.read_text()) == res
+    moved = {"row": new["row"], "reference": {**ref, "eps_e_mean": 1.6}}
+    with pytest.raises(ValueError, match="reference eps_e_mean"):
+        rec.replace_shipped_row(res, "dress", moved)
+    with pytest.raises(ValueError, match="no shipped GAPS row"):
+        rec.replace_shipped_row({"methods": {"skirt": {"models": []}}}, "skirt", new)
