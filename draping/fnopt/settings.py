@@ -67,7 +67,9 @@ class TrainSettings:
     kept across the frame boundaries; each frame's loss is its sub-optimality against
     ``rollout_extra`` more classical iterations; Adam at ``rollout_lr`` (cosine to a tenth).
     ``init``: start from these weights instead of a seeded initialisation (``"shipped"``: the
-    package's; ``""``: none); with ``steps=0`` only the fine-tuning runs.
+    package's; ``""``: none); with ``steps=0`` only the fine-tuning runs. Three seeds of
+    ``--init shipped --steps 0 --rollout-steps 800`` were not better than the shipped weights
+    (docs/measurements/fnopt.md, session 11), so the default stays 0.
     """
 
     width: int = 16
