@@ -1,12 +1,16 @@
-"""Fused CPU kernels (numba) of FNOpt's inference loop: Hessian products and the subspace Gram.
+"""Fused CPU kernels (numba) of FNOpt's inference loop: gradient, Hessian products, subspace Gram.
 
 :func:`draping.fnopt.cloth.loss_hvp` builds ``H d`` from a few dozen tensor operations over
 ``(K, B, H, W, 3)`` arrays; each reads and writes the whole field, so at 64x64 / 100x100 five
 products cost ~1.6 / ~3.6 ms, more than the FNO's forward. :func:`loss_hvp_fused` computes the
 same products (the same quadrature, term by term) in one pass per direction, accumulating in
-float64, and :func:`gram_fused` the subspace step's ``D^T H D`` and ``g^T D`` in one pass over
-the fields without float64 copies of them. Both are for inference: they are not differentiable
-(training keeps the torch functions, so ``polygeo train-fnopt`` is unchanged). The torch
+float64, :func:`loss_grad_fused` the loss and its gradient ``dL/da`` (the closed form of
+:func:`draping.fnopt.cloth.energies`' derivative, instead of an autograd forward and backward
+pass) in one pass, and :func:`gram_fused` the subspace step's ``D^T H D`` and ``g^T D`` in one
+pass over the fields without float64 copies of them. All are for inference: they are not
+differentiable (training's pool steps keep the torch functions and autograd, so ``polygeo
+train-fnopt`` is unchanged; the rollout fine-tuning option, whose products are closed form,
+gets the fused gradient, detached there as before). The torch
 functions stay the reference; the tests compare with them (float64: to rounding).
 """
 
@@ -16,9 +20,9 @@ import numba as nb
 import numpy as np
 import torch
 
-from .cloth import positions_from_accel
+from .cloth import GRAVITY, positions_from_accel
 
-__all__ = ["loss_hvp_fused", "gram_fused"]
+__all__ = ["loss_grad_fused", "loss_hvp_fused", "gram_fused"]
 
 
 @nb.njit(cache=True)
@@ -189,6 +193,167 @@ def loss_hvp_fused(d: torch.Tensor, a: torch.Tensor, x_prev: torch.Tensor, v_pre
          float(dt), out)
     res = torch.from_numpy(out).to(d.dtype)
     return res[0] if single else res
+
+
+@nb.njit(cache=True)
+def _grad(a, x, x_prev, mass, bx, by, ks, ksh, kb, damp, wr, wc, ir, ic, dt, grav, out, val):
+    """``val[b] = L_b``, ``out[b] = dL_b/da``; see :func:`loss_grad_fused`."""
+    n_b, h, w, _ = a.shape
+    dt2 = dt * dt
+    xu = np.empty((h, w - 1, 3))
+    xv = np.empty((h - 1, w, 3))
+    qu = np.empty((h, w - 1, 3))
+    qv = np.empty((h - 1, w, 3))
+    for b in range(n_b):
+        ibx, iby = 1.0 / bx[b], 1.0 / by[b]
+        e_st = 0.0
+        for i in range(h):                                      # stretch along u
+            for j in range(w - 1):
+                s = 0.0
+                for c in range(3):
+                    t = (np.float64(x[b, i, j + 1, c]) - np.float64(x[b, i, j, c])) * ibx
+                    xu[i, j, c] = t
+                    s += t * t
+                su = 0.5 * (s - 1.0)
+                e_st += wr[i] * su * su
+                f = ks[b] * wr[i] * su
+                for c in range(3):
+                    qu[i, j, c] = f * xu[i, j, c]
+        for i in range(h - 1):                                  # stretch along v
+            for j in range(w):
+                s = 0.0
+                for c in range(3):
+                    t = (np.float64(x[b, i + 1, j, c]) - np.float64(x[b, i, j, c])) * iby
+                    xv[i, j, c] = t
+                    s += t * t
+                sv = 0.5 * (s - 1.0)
+                e_st += wc[j] * sv * sv
+                f = ks[b] * wc[j] * sv
+                for c in range(3):
+                    qv[i, j, c] = f * xv[i, j, c]
+        e_sh = 0.0
+        for i in range(h - 1):                                  # shear, per cell
+            for j in range(w - 1):
+                cc = 0.0
+                for c in range(3):
+                    cc += 0.25 * (xu[i + 1, j, c] + xu[i, j, c]) * (xv[i, j + 1, c] + xv[i, j, c])
+                e_sh += cc * cc
+                f = 0.25 * ksh[b] * cc
+                for c in range(3):
+                    tu = f * (xv[i, j + 1, c] + xv[i, j, c])
+                    tv = f * (xu[i + 1, j, c] + xu[i, j, c])
+                    qu[i, j, c] += tu
+                    qu[i + 1, j, c] += tu
+                    qv[i, j, c] += tv
+                    qv[i, j + 1, c] += tv
+        e_b = 0.0
+        for i in range(h):                                      # bend: x_uu
+            for j in range(w - 2):
+                f = kb[b] * wr[i] * ic[j] * ibx * ibx
+                for c in range(3):
+                    t = xu[i, j + 1, c] - xu[i, j, c]
+                    e_b += f * t * t
+                    qu[i, j + 1, c] += f * t
+                    qu[i, j, c] -= f * t
+        for i in range(h - 1):                                  # bend: x_uv
+            for j in range(w - 1):
+                f = 2.0 * kb[b] * iby * iby
+                for c in range(3):
+                    t = xu[i + 1, j, c] - xu[i, j, c]
+                    e_b += f * t * t
+                    qu[i + 1, j, c] += f * t
+                    qu[i, j, c] -= f * t
+        for i in range(h - 2):                                  # bend: x_vv
+            for j in range(w):
+                f = kb[b] * wc[j] * ir[i] * iby * iby
+                for c in range(3):
+                    t = xv[i + 1, j, c] - xv[i, j, c]
+                    e_b += f * t * t
+                    qv[i + 1, j, c] += f * t
+                    qv[i, j, c] -= f * t
+        e_ext = 0.0
+        for i in range(h):                      # divergence; gravity, damping, inertia
+            for j in range(w):
+                m = np.float64(mass[b, i, j])
+                e_ext += grav * m * np.float64(x[b, i, j, 2])
+                for c in range(3):
+                    t = 0.0
+                    if j > 0:
+                        t += qu[i, j - 1, c] * ibx
+                    if j < w - 1:
+                        t -= qu[i, j, c] * ibx
+                    if i > 0:
+                        t += qv[i - 1, j, c] * iby
+                    if i < h - 1:
+                        t -= qv[i, j, c] * iby
+                    ac = np.float64(a[b, i, j, c])
+                    dx = np.float64(x[b, i, j, c]) - np.float64(x_prev[b, i, j, c])
+                    e_ext += 0.5 * m * (damp[b] / dt * dx * dx + dt2 * ac * ac)
+                    t = dt2 * t + m * (damp[b] * dt * dx + dt2 * ac)
+                    if c == 2:
+                        t += dt2 * grav * m
+                    out[b, i, j, c] = t
+        val[b] = 0.5 * (ks[b] * e_st + ksh[b] * e_sh + e_b) + e_ext
+
+
+def loss_grad_fused(a: torch.Tensor, x_prev: torch.Tensor, v_prev: torch.Tensor, hx, hy,
+                    material: dict, dt: float, mass: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``L_cloth(a)`` and ``dL/da`` in one fused numba pass (closed form, not differentiable).
+
+    The terms and quadrature of :func:`draping.fnopt.cloth.energies` (stretch, shear, bend,
+    gravity, damping when ``material`` has it, inertia) and their derivative, accumulated in
+    float64: ``dL/da = dt^2 dE/dx + dt^2 M (a + g e_z) + c dt M (x - x_prev)``.
+
+    Parameters
+    ----------
+    a, x_prev, v_prev : torch.Tensor
+        ``(B, H, W, 3)`` accelerations (m/s^2, handles' included), positions (m), velocities
+        (m/s), one floating dtype.
+    hx, hy : float or torch.Tensor
+        Spacings, m (floats or ``(B,)``).
+    material : dict
+        ``(B,)`` tensors or floats ``stretch``, ``shear``, ``bend`` (and ``damping``, 1/s).
+    dt : float
+        Time step, s.
+    mass : torch.Tensor
+        ``(B, H, W)`` lumped masses, kg.
+
+    Returns
+    -------
+    tuple
+        ``(L (B,) in J, dL/da (B, H, W, 3) in J s^2/m)`` in ``a``'s dtype: equal to
+        :func:`draping.fnopt.cloth.cloth_loss` and its autograd gradient up to rounding
+        (float64 inputs: ~1e-14 relative).
+
+    Raises
+    ------
+    ValueError
+        If the states' shapes differ, ``mass`` is not ``(B, H, W)`` or the grid is smaller
+        than 3 x 3.
+    """
+    if a.dim() != 4 or a.shape[-1] != 3:
+        raise ValueError(f"a: expected shape (B, H, W, 3), got {tuple(a.shape)}")
+    for name, t in (("x_prev", x_prev), ("v_prev", v_prev)):
+        if t.shape != a.shape:
+            raise ValueError(f"{name}: expected shape {tuple(a.shape)}, got {tuple(t.shape)}")
+    b, h, w, _ = a.shape
+    if mass.shape != a.shape[:3]:
+        raise ValueError(f"mass: expected shape {tuple(a.shape[:3])}, got {tuple(mass.shape)}")
+    if h < 3 or w < 3:
+        raise ValueError(f"a: expected a grid of at least 3 x 3 vertices, got {h} x {w}")
+    a = a.detach()
+    x = positions_from_accel(a, x_prev.detach(), v_prev.detach(), dt)
+    area = _per_sheet(hx, b) * _per_sheet(hy, b)
+    k = {n: _per_sheet(material.get(n, 0.0), b) for n in ("stretch", "shear", "bend", "damping")}
+    out = np.empty(a.shape, dtype=np.float64)
+    val = np.empty(b, dtype=np.float64)
+    _grad(a.contiguous().numpy(), x.contiguous().numpy(), x_prev.detach().contiguous().numpy(),
+          mass.detach().contiguous().numpy(), _per_sheet(hx, b), _per_sheet(hy, b),
+          k["stretch"] * area, k["shear"] * area, 1e-3 * k["bend"] * area, k["damping"],
+          _weights(h, False), _weights(w, False), _weights(h, True), _weights(w, True),
+          float(dt), GRAVITY, out, val)
+    return torch.from_numpy(val).to(a.dtype), torch.from_numpy(out).to(a.dtype)
 
 
 @nb.njit(cache=True, fastmath=True)

@@ -68,7 +68,9 @@ class StepProblem:
         Without gradients (inference), the closed-form products and the subspace step's Gram
         matrix come from the fused numba kernels of :mod:`draping.fnopt.kernels` (default;
         equal to the torch functions up to float rounding, 2.5-3x faster products at 64x64 and
-        100x100); ``False``: the torch functions.
+        100x100), and so do :meth:`grad_hvp`'s loss and gradient where its products are in
+        closed form (``analytic_hvp``; the gradient is detached either way); ``False``: the
+        torch functions and autograd.
     """
 
     x_prev: torch.Tensor
@@ -142,10 +144,21 @@ class StepProblem:
         return val.detach(), g.detach() * free, hvp
 
     def _grad_hvp_analytic(self, a: torch.Tensor):
-        """:meth:`grad_hvp` with the products of :func:`cloth.loss_hvp` (no kept graph)."""
-        val, g = self.loss_grad(a)
+        """:meth:`grad_hvp` with the products of :func:`cloth.loss_hvp` (no kept graph).
+
+        With ``fused`` (and a grid of at least 3 x 3), the loss and gradient too come from a
+        fused kernel (:func:`draping.fnopt.kernels.loss_grad_fused`) instead of autograd.
+        """
         ac = self.compose(a.detach())
         free = self.free
+        if self.fused and min(ac.shape[1:3]) >= 3:
+            from .kernels import loss_grad_fused
+            self.evals += 1
+            val, g = loss_grad_fused(ac, self.x_prev, self.v_prev, self.hx, self.hy,
+                                     self.material, self.dt, self.mass)
+            g = g * free
+        else:
+            val, g = self.loss_grad(a)
 
         def many(ds: list) -> torch.Tensor:
             d = torch.stack(ds) if isinstance(ds, (list, tuple)) else ds
