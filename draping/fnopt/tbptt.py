@@ -38,29 +38,7 @@ from .solvers import (
     solve_pcg,
 )
 
-__all__ = ["frame_problem", "unrolled_solve", "rollout_losses", "rollout_train_step"]
-
-
-def frame_problem(pool, ids: torch.Tensor, x: torch.Tensor, v: torch.Tensor, t: torch.Tensor,
-                  dtype=torch.float32) -> tuple[StepProblem, torch.Tensor]:
-    """The step problem of pool entries ``ids`` from the state ``(x, v)`` at times ``t``.
-
-    ``x, v`` ``(B, r, r, 3)`` (m, m/s; may carry a graph, which the problem keeps); ``t``
-    ``(B,)`` s. Closed-form Hessian products (differentiable in the direction). Returns the
-    problem and the handle targets ``(B, r, r, 3)`` at ``t + dt`` (0 off the handles).
-    """
-    from . import cloth
-
-    r = x.shape[1]
-    target = pool.targets(ids, t + DT).to(dtype)
-    hm = pool.hmask[ids].to(dtype)
-    h = (pool.size[ids] / (r - 1)).to(dtype)
-    mat = {k: m[ids].to(dtype) for k, m in pool.mat.items()}
-    mass = cloth.vertex_mass(r, r, h, h, mat["density"], dtype)
-    free = (1.0 - hm)[..., None]
-    x, v = x.to(dtype), v.to(dtype)
-    a_fixed = ((target - x) / DT - v) / DT * hm[..., None]
-    return StepProblem(x, v, h, h, mat, DT, free, a_fixed, mass, analytic_hvp=True), target
+__all__ = ["unrolled_solve", "rollout_losses", "rollout_train_step"]
 
 
 def unrolled_solve(model: FNO, p: StepProblem, iters: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -131,10 +109,10 @@ def rollout_losses(model: FNO, pool, ids: torch.Tensor, frames: int, iters: int,
     losses = []
     for k in range(frames):
         t = t0 + k * DT
-        p_in, target = frame_problem(pool, ids, x.detach(), v.detach(), t)
+        p_in, target = pool.problem(ids, state=(x.detach(), v.detach(), t), analytic_hvp=True)
         a, denom = unrolled_solve(model, p_in, iters)
         # the frame's energy on its state in the graph (float64, as the pool training's)
-        p_g, _ = frame_problem(pool, ids, x, v, t, torch.float64)
+        p_g, _ = pool.problem(ids, torch.float64, state=(x, v, t), analytic_hvp=True)
         l_n = p_g.loss(a.double())
         with torch.no_grad():
             a_ref = solve_pcg(p_in, extra, a0=a.detach(), normal=model.config.normal,

@@ -245,20 +245,27 @@ class Pool:
                 out.append((c + rot) * hm)
         return torch.stack(out)
 
-    def problem(self, ids: torch.Tensor, dtype=torch.float32) -> tuple[StepProblem, torch.Tensor]:
-        """The step problems of entries ``ids`` and their handle target grids."""
+    def problem(self, ids: torch.Tensor, dtype=torch.float32, state=None,
+                analytic_hvp: bool = False) -> tuple[StepProblem, torch.Tensor]:
+        """The step problems of entries ``ids`` and their handle target grids.
+
+        ``state``: ``(x, v, t)`` (``(B, r, r, 3)`` m, m/s; ``(B,)`` s) to start from instead of
+        the entries' stored ones (a graph they carry is kept; the rollout fine-tuning of
+        :mod:`draping.fnopt.tbptt`). ``analytic_hvp``: closed-form Hessian products (default
+        off: autograd's, the shipped weights' own arithmetic, bit for bit).
+        """
         r = self.s.res
-        x, v = self.x[ids].to(dtype), self.v[ids].to(dtype)
-        target = self.targets(ids, self.t[ids] + DT).to(dtype)
+        x, v, t = (self.x[ids], self.v[ids], self.t[ids]) if state is None else state
+        x, v = x.to(dtype), v.to(dtype)
+        target = self.targets(ids, t + DT).to(dtype)
         hm = self.hmask[ids].to(dtype)
         h = (self.size[ids] / (r - 1)).to(dtype)
-        mat = {k: t[ids].to(dtype) for k, t in self.mat.items()}
+        mat = {k: m[ids].to(dtype) for k, m in self.mat.items()}
         mass = cloth.vertex_mass(r, r, h, h, mat["density"], dtype)
         free = (1.0 - hm)[..., None]
         a_fixed = ((target - x) / DT - v) / DT * hm[..., None]
-        # autograd's products: the shipped weights' own arithmetic, bit for bit
         return StepProblem(x, v, h, h, mat, DT, free, a_fixed, mass,
-                           analytic_hvp=False), target
+                           analytic_hvp=analytic_hvp), target
 
 
 def _lr(s: TrainSettings, step: int) -> float:
@@ -428,8 +435,7 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
     else:
         model.load_state_dict(ck.tensors["model"])
         opt.load_state_dict(ck.tensors["opt"])
-        if "opt2" in ck.tensors:
-            opt2.load_state_dict(ck.tensors["opt2"])
+        opt2.load_state_dict(ck.tensors["opt2"])
         pool = Pool.__new__(Pool)
         pool.s, pool.gen = s, gen
         for k, v in ck.tensors["pool"].items():

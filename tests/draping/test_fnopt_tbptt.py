@@ -31,7 +31,7 @@ def test_unrolled_solve_is_the_inference_solve_without_its_guard():
     # iteration: the same iterates up to float32 rounding
     net, pool = _net(), _pool()
     ids = torch.arange(4)
-    p, _ = tbptt.frame_problem(pool, ids, pool.x[ids], pool.v[ids], pool.t[ids])
+    p, _ = pool.problem(ids, state=(pool.x[ids], pool.v[ids], pool.t[ids]), analytic_hvp=True)
     a, denom = tbptt.unrolled_solve(net, p, 4)
     want = model.solve_fnopt(net, p, 4, guard=False)
     assert torch.allclose(p.compose(a.detach()), want, rtol=1e-4, atol=1e-5 * want.abs().max())
