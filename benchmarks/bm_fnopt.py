@@ -111,9 +111,15 @@ THESIS_LBFGS = "lbfgs"
 EQUAL_ERROR_METRIC = "e_3d"
 
 
-def _step(name: str, n: int, net=None, lr=None, **kw):
+def _fno_options(args) -> dict:
+    """``solve_fnopt``'s FNO-grid options from ``--coarse-res`` / ``--stiffness-res``."""
+    return {"coarse_res": args.coarse_res, "stiffness_res": args.stiffness_res}
+
+
+def _step(name: str, n: int, net=None, lr=None, fno: dict | None = None, **kw):
     if name == "fnopt":
-        return lambda p, a0: solve_fnopt(net, p, n)
+        fno = fno or {}
+        return lambda p, a0: solve_fnopt(net, p, n, **fno)
     if name == "fnopt-line":
         return lambda p, a0: solve_fnopt(net, p, n, step="line")
     if name == "pgd":
@@ -248,7 +254,8 @@ def part_validation(args, net) -> dict:
         for lay, mo, sp in VALIDATION_CASES:
             s = SimSettings(res=(args.res, args.res), handles=lay, motion=mo, frames=45,
                             speed=sp)
-            r = _measure(s, _step("fnopt", 10, model), reference_rollout(s, REFS), 3)
+            r = _measure(s, _step("fnopt", 10, model, fno=_fno_options(args)),
+                         reference_rollout(s, REFS), 3)
             cd.append(r.get("e_cd", float("inf")))
             e3.append(r.get("e_3d", float("inf")))
         rec["runs"].append({"weights": record_path(w, ROOT), "e_cd": cd, "e_3d": e3,
@@ -283,7 +290,7 @@ def part_general(args, net) -> dict:
                 r = _measure(s, lambda p, a0: solvers.solve_reference(p, a0), ref, args.every,
                              FLOOR_PERTURB, warm_start=True, dtype=torch.float64)
             else:
-                r = _measure(s, _step(name, n, net), ref, args.every)
+                r = _measure(s, _step(name, n, net, fno=_fno_options(args)), ref, args.every)
             r.update(layout=layout, motion=motion, speed=speed, optimizer=name, iters=n)
             rec["runs"].append(r)
             print(json.dumps(r), flush=True)
@@ -631,6 +638,10 @@ def main() -> None:
     ap.add_argument("--plan", default="fnopt:10,pcg:10,pgd:10,lbfgs:100",
                     help="general part: optimiser:iterations, comma-separated")
     ap.add_argument("--tag", default="", help="suffix of the output names")
+    ap.add_argument("--coarse-res", type=int, default=0, help="validation / general parts: "
+                    "run the FNO on the grid whose longer side has this many vertices (0: off)")
+    ap.add_argument("--stiffness-res", type=int, default=0, help="validation / general parts: "
+                    "the FNO's stiffness numbers at that grid's spacing (0: off)")
     ap.add_argument("--merge", action="store_true", help="general part: replace only the rows "
                     "run now in the existing JSON (same res and frames), keep the others")
     ap.add_argument("--lbfgs-iters", default="20,50,100,150,200,300;20,50,100,150,200,300;"

@@ -124,6 +124,9 @@ def register_simulate(sub: argparse._SubParsersAction) -> None:
                    "convergence (default fnopt: the shipped learned optimiser)")
     p.add_argument("--iters", type=int, default=10,
                    help="inner iterations per frame (default 10)")
+    p.add_argument("--fno-coarse", type=int, default=0,
+                   help="fnopt: run the FNO on the grid whose longer side has this many "
+                   "vertices (0: the sheet's own grid; default 0)")
     p.add_argument("--lr", type=float, default=None,
                    help="gd/adam step size, lbfgs step scale (default gd 2e-3, adam 0.1, "
                    "lbfgs 1.0)")
@@ -157,7 +160,7 @@ def run_simulate(args: argparse.Namespace) -> int:
                     speed=args.speed, frames=args.frames, optimizer=args.optimizer,
                     iters=args.iters, lr=args.lr,
                     material=Material(args.stretch, args.shear, args.bend),
-                    repulsion=args.repulsion)
+                    repulsion=args.repulsion, fno_coarse=args.fno_coarse)
     out = Path(args.out)
     bar = runs.progress(total=s.frames, desc=s.optimizer, quiet=args.quiet)
     ro = run(s, progress=lambda: bar.update(1))

@@ -22,6 +22,9 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from polygeo.checks import check_int
+
+from . import coarse
 from .solvers import (
     StepProblem,
     laplace_preconditioner,
@@ -31,7 +34,7 @@ from .solvers import (
 )
 
 __all__ = ["FNOConfig", "SpectralConv2d", "FNO", "features", "constant_features",
-           "fno_correction", "fno_direction",
+           "fno_correction", "fno_direction", "fno_inputs",
            "fnopt_iteration", "subspace_update", "solve_fnopt", "STEPS",
            "N_INPUTS", "load_pretrained", "n_parameters", "stiffness_numbers", "WEIGHTS"]
 
@@ -223,13 +226,14 @@ def _gelu(y: torch.Tensor, inplace: bool) -> torch.Tensor:
     return torch.ops.aten.gelu_(y) if inplace else nn.functional.gelu(y)
 
 
-def stiffness_numbers(p: StepProblem) -> torch.Tensor:
+def stiffness_numbers(p: StepProblem, spacing=None) -> torch.Tensor:
     """Dimensionless stiffness numbers ``(B, 3)``, log10, centred.
 
     ``dt^2 k / (rho h^2)`` for stretch and shear, ``dt^2 k_b / (rho h^4)`` for bending (``h``:
-    the mean spacing).
+    the mean spacing; ``spacing``: ``(hx, hy)`` ``(B,)`` in m to use instead of ``p``'s).
     """
-    h = 0.5 * (p.hx + p.hy)
+    hx, hy = (p.hx, p.hy) if spacing is None else spacing
+    h = 0.5 * (hx + hy)
     rho = p.material["density"]
     dt2 = p.dt * p.dt
     s = dt2 * p.material["stretch"] / (rho * h * h)
@@ -239,15 +243,21 @@ def stiffness_numbers(p: StepProblem) -> torch.Tensor:
                         (torch.log10(b) - 1.0) / 1.5], 1)
 
 
-def constant_features(p: StepProblem, dtype: torch.dtype) -> torch.Tensor:
+def constant_features(p: StepProblem, dtype: torch.dtype, spacing=None,
+                      free: torch.Tensor | None = None) -> torch.Tensor:
     """The FNO's input channels that one step problem keeps ``(B, 6, H, W)``.
 
     The handle mask, the three :func:`stiffness_numbers` and the two grid coordinates in
     ``[-1, 1]``: built once per solve by :func:`solve_fnopt` and passed to :func:`features`.
+    ``spacing``: ``(hx, hy)`` ``(B,)`` (m) for the stiffness numbers instead of ``p``'s;
+    ``free``: a free mask ``(B or 1, H, W, 1)`` of another grid than ``p``'s (the FNO's coarse
+    grid, :mod:`draping.fnopt.coarse`), whose shape the channels then take.
     """
-    b, h, w, _ = p.x_prev.shape
-    mask = (1.0 - p.free[..., 0]).to(dtype).expand(b, h, w)[:, None]
-    stiff = stiffness_numbers(p).to(dtype)[:, :, None, None].expand(b, 3, h, w)
+    b = p.x_prev.shape[0]
+    free = p.free if free is None else free
+    h, w = free.shape[1:3]
+    mask = (1.0 - free[..., 0]).to(dtype).expand(b, h, w)[:, None]
+    stiff = stiffness_numbers(p, spacing).to(dtype)[:, :, None, None].expand(b, 3, h, w)
     yy, xx = torch.meshgrid(torch.linspace(-1, 1, h, dtype=dtype),
                             torch.linspace(-1, 1, w, dtype=dtype), indexing="ij")
     coords = torch.stack([yy, xx])[None].expand(b, 2, h, w)
@@ -266,17 +276,29 @@ def features(p: StepProblem, z: torch.Tensor, z_prev: torch.Tensor, da_prev: tor
     return torch.cat([fields, const], 1)
 
 
-def fno_correction(model: FNO, p: StepProblem, z, z_prev, da_prev, const=None) -> torch.Tensor:
+def fno_correction(model: FNO, p: StepProblem, z, z_prev, da_prev, const=None,
+                   grid: coarse.FNOGrid | None = None) -> torch.Tensor:
     """The FNO's proposal ``(B, H, W, 3)`` (m/s^2): ``RMS(z) F(...)``, zero at handles.
 
     ``z = P g`` is the gradient in the metric of
     :func:`draping.fnopt.solvers.laplace_preconditioner`; the FNO sees ``z``, the previous
     ``z`` and the previous update, divided by ``z``'s RMS (scale-free inputs and output).
-    ``const``: :func:`constant_features` of ``p``, when the caller keeps them.
+    ``const``: :func:`constant_features` of ``p``, when the caller keeps them. ``grid``: run
+    the FNO on a coarse grid instead (:mod:`draping.fnopt.coarse`): the three fields
+    restricted to it, normalised by the restricted ``z``'s RMS over the coarse free vertices,
+    ``grid.const`` as the constant channels; the proposal, zero at the coarse handles, is
+    prolonged back (then zero at ``p``'s handles too).
     """
-    scale = p.residual_rms(z).clamp(min=1e-12)
+    if grid is not None:
+        z, z_prev, da_prev = (coarse.restrict(f, grid) for f in (z, z_prev, da_prev))
+        free, const = grid.free, grid.const
+        scale = coarse.free_rms(z, free).clamp(min=1e-12)
+    else:
+        free = p.free
+        scale = p.residual_rms(z).clamp(min=1e-12)
     y = model(features(p, z, z_prev, da_prev, scale, const)).permute(0, 2, 3, 1)
-    return y * scale[:, None, None, None] * p.free
+    y = y * scale[:, None, None, None] * free
+    return y if grid is None else coarse.prolong(y, grid) * p.free
 
 
 def fno_direction(model: FNO, p: StepProblem, z, z_prev, da_prev) -> torch.Tensor:
@@ -308,7 +330,7 @@ STEPS = ("line", "subspace")
 
 
 def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
-                    create_graph: bool = False, zn=None, const=None):
+                    create_graph: bool = False, zn=None, const=None, grid=None):
     """FNOpt's update: the classical PCG step's subspace plus the FNO's proposal.
 
     The span of the preconditioned steepest descent ``-z``, the previous update (PCG's memory)
@@ -328,7 +350,8 @@ def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
     ``zn`` (weights with ``config.normal``): a list of further classical directions, the
     out-of-plane preconditioned gradient's (:func:`draping.fnopt.solvers.normal_directions`);
     they join the classical step (then ``solve_pcg(..., normal=True)``'s). ``const``:
-    :func:`constant_features` of ``p`` (a solve builds them once).
+    :func:`constant_features` of ``p`` (a solve builds them once). ``grid``: the FNO's coarse
+    grid (:func:`fno_correction`).
 
     Returns
     -------
@@ -336,7 +359,7 @@ def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
         ``(da, da_pcg, m, m_pcg)``: the update and the classical update ``(B, H, W, 3)``
         (m/s^2), and their model decreases ``(B,)`` (J, float64, <= 0).
     """
-    f = fno_correction(model, p, z, z_prev, da_prev, const)
+    f = fno_correction(model, p, z, z_prev, da_prev, const, grid)
     base = [-z * p.free, da_prev] + (list(zn) if zn is not None else [])
     if create_graph:
         hd = p.hessian_products(base, hvp) + [hvp(f, create_graph=True)]
@@ -360,8 +383,46 @@ def _evaluate(p: StepProblem, a: torch.Tensor, grad: bool):
         return p.loss(a).detach(), None, None
 
 
+def fno_inputs(p: StepProblem, dtype: torch.dtype, coarse_res: int = 0,
+               stiffness_res: int = 0):
+    """The FNO's constant channels and grid for one solve: ``(const, grid)``.
+
+    ``coarse_res`` > 0: the FNO runs on the grid whose longer side has ``coarse_res`` vertices
+    (:func:`draping.fnopt.coarse.coarse_shape`), with the stiffness numbers of that grid's
+    spacing; ``grid`` is its :class:`~draping.fnopt.coarse.FNOGrid` (``None`` where that grid is
+    ``p``'s own, so the solve is the default one). ``stiffness_res`` > 0: the FNO stays on
+    ``p``'s grid but its stiffness numbers take the spacing of that ``stiffness_res`` grid.
+    0 (both defaults): ``p``'s grid and spacing.
+
+    Raises
+    ------
+    ValueError
+        If an option is not 0 or an int >= 2, or both are set.
+    TypeError
+        If an option is not an int.
+    """
+    for name, v in (("coarse_res", coarse_res), ("stiffness_res", stiffness_res)):
+        check_int(v, name, low=0)
+        if v == 1:
+            raise ValueError(f"{name}: expected 0 (off) or an int >= 2, got 1")
+    if coarse_res and stiffness_res:
+        raise ValueError("coarse_res and stiffness_res: expected at most one of them set, got "
+                         f"{coarse_res} and {stiffness_res}")
+    fine = tuple(p.x_prev.shape[1:3])
+    shape = coarse.coarse_shape(*fine, coarse_res or stiffness_res or max(fine))
+    if shape == fine:
+        return constant_features(p, dtype), None
+    spacing = coarse.coarse_spacing(p.hx, p.hy, fine, shape)
+    if stiffness_res:
+        return constant_features(p, dtype, spacing), None
+    free_c = coarse.coarse_free(p.free, shape)
+    const = constant_features(p, dtype, spacing, free_c)
+    return const, coarse.fno_grid(p.free, shape, const, dtype)
+
+
 def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "subspace",
-                guard: bool = True, info: dict | None = None) -> torch.Tensor:
+                guard: bool = True, info: dict | None = None, coarse_res: int = 0,
+                stiffness_res: int = 0) -> torch.Tensor:
     """Algorithm 2: ``iters`` learned updates from ``a = 0``; returns the accelerations.
 
     ``step``: ``"subspace"`` (default, :func:`subspace_update`) or ``"line"`` (the exact
@@ -371,17 +432,25 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
     learned part cannot spoil a step where the quadratic model misleads it (a replaced
     update costs one more gradient; the last iteration's check one more energy).
     ``info`` receives ``replaced`` (updates replaced, summed over the batch).
+    ``coarse_res``, ``stiffness_res`` (subspace step; 0, the default: off): the FNO's grid and
+    spacing (:func:`fno_inputs`); the subspace step and its classical directions stay on
+    ``p``'s grid.
 
     Raises
     ------
     ValueError
-        On an unknown ``step``.
+        On an unknown ``step``, bad ``coarse_res`` / ``stiffness_res`` (:func:`fno_inputs`), or
+        either of them set with ``step="line"``.
     """
     if step not in STEPS:
         raise ValueError(f"step: expected one of {list(STEPS)}, got {step!r}")
+    if step == "line" and (coarse_res or stiffness_res):
+        raise ValueError("coarse_res / stiffness_res: supported by step='subspace' only, got "
+                         f"{coarse_res} / {stiffness_res} with step='line'")
     pre = laplace_preconditioner(p)
     pn = normal_preconditioner(p) if model.config.normal and step == "subspace" else None
     a = torch.zeros_like(p.x_prev) if a0 is None else (a0 * p.free).clone()
+    const, grid = fno_inputs(p, a.dtype, coarse_res, stiffness_res)
     z_prev = torch.zeros_like(a)
     da = torch.zeros_like(a)
     if step == "line":
@@ -391,7 +460,6 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
         return p.compose(a)
     slack = 1e-6 if a.dtype != torch.float64 else 1e-12
     replaced = 0
-    const = constant_features(p, a.dtype)
     val, g, hvp = p.grad_hvp(a)
     for k in range(iters):
         more = k < iters - 1              # a next iteration needs the gradient at a + dn
@@ -399,7 +467,7 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
         zn = normal_directions(p, g, pn, model.config.normal_split) if pn is not None else None
         with torch.no_grad():
             dn, dn_pcg, _, m_pcg = subspace_update(model, p, g, hvp, z, z_prev, da, zn=zn,
-                                                   const=const)
+                                                   const=const, grid=grid)
         nxt = _evaluate(p, a + dn, more) if (more or guard) else None
         if guard:
             bad = (nxt[0] - val).double() > m_pcg + slack * val.abs().double()

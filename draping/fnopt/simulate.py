@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from polygeo.checks import check_int
+
 from ..metrics import relative_vertex_error
 from . import cloth
 from .handles import DT, check_motion
@@ -32,7 +34,11 @@ DEFAULT_LR = {"gd": 2e-3, "adam": 0.1, "lbfgs": 1.0}
 
 @dataclass
 class SimSettings:
-    """A rollout: grid ``res`` (H, W), sheet width ``size`` (m), handles, motion, optimiser."""
+    """A rollout: grid ``res`` (H, W), sheet width ``size`` (m), handles, motion, optimiser.
+
+    ``fno_coarse`` (FNOpt only; 0, the default: off): run the FNO on the grid whose longer side
+    has this many vertices (``solve_fnopt(coarse_res=...)``, :mod:`draping.fnopt.coarse`).
+    """
 
     res: tuple = (64, 64)
     size: float = 1.0
@@ -46,6 +52,7 @@ class SimSettings:
     material: cloth.Material = field(default_factory=cloth.Material)
     repulsion: float = 0.0
     orientation: str = "vertical"
+    fno_coarse: int = 0
 
     def __post_init__(self) -> None:
         if self.optimizer not in OPTIMIZERS:
@@ -59,6 +66,8 @@ class SimSettings:
                 self.frames < 1:
             raise ValueError(f"frames: expected an int >= 1, got {self.frames!r}")
         self.res = tuple(int(r) for r in self.res)
+        if check_int(self.fno_coarse, "fno_coarse", low=0) == 1:
+            raise ValueError("fno_coarse: expected 0 (off) or an int >= 2, got 1")
 
     def sheet(self) -> cloth.Sheet:
         """The grid sheet."""
@@ -67,7 +76,7 @@ class SimSettings:
     def key(self) -> dict:
         """What the reference rollout depends on."""
         d = asdict(self)
-        for k in ("optimizer", "iters", "lr"):
+        for k in ("optimizer", "iters", "lr", "fno_coarse"):
             d.pop(k)
         return d
 
@@ -81,7 +90,8 @@ def step_function(settings: SimSettings, model=None):
         from .model import load_pretrained, solve_fnopt
 
         net = model if model is not None else load_pretrained()
-        return lambda p, a0: solve_fnopt(net, p, n)
+        k = settings.fno_coarse
+        return lambda p, a0: solve_fnopt(net, p, n, coarse_res=k)
     lr = settings.lr if settings.lr is not None else DEFAULT_LR[name]
     if name == "lbfgs":
         return lambda p, a0: CLASSICAL[name](p, n, step=lr)
