@@ -359,7 +359,7 @@ def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
         ``(da, da_pcg, m, m_pcg)``: the update and the classical update ``(B, H, W, 3)``
         (m/s^2), and their model decreases ``(B,)`` (J, float64, <= 0).
     """
-    f = fno_correction(model, p, z, z_prev, da_prev, const, grid)
+    f = fno_correction(model, p, z, z_prev, da_prev, const, grid=grid)
     base = [-z * p.free, da_prev] + (list(zn) if zn is not None else [])
     if create_graph:
         hd = p.hessian_products(base, hvp) + [hvp(f, create_graph=True)]

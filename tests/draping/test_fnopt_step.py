@@ -118,7 +118,7 @@ def test_a_useless_proposal_gets_no_weight(monkeypatch):
     for useless in (lambda z, d: -3.0 * z, lambda z, d: 2.0 * d - 0.5 * z,
                     lambda z, d: torch.zeros_like(z)):
         monkeypatch.setattr(model, "fno_correction",
-                            lambda net, p, z, z_prev, d, const=None, f=useless: f(z, d))
+                            lambda net, p, z, z_prev, d, const=None, grid=None, f=useless: f(z, d))
         da, da_pcg, m, m_pcg = model.subspace_update(None, p, g, hvp, z, z, da_prev)
         assert torch.allclose(da, da_pcg, rtol=1e-8, atol=1e-10 * float(da_pcg.abs().max()))
         assert float(m[0]) == pytest.approx(float(m_pcg[0]), rel=1e-9)
