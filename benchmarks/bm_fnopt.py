@@ -105,6 +105,10 @@ PRECONDITIONED = ("lbfgs-pre",)
 #: beside the strongest variant.
 THESIS_LBFGS = "lbfgs"
 
+#: Suffix of the classical rows solved with autograd's gradients (``lbfgs-autograd``, ...);
+#: the rows without it get the fused closed-form gradient (``fused_grad``) since session 12.
+AUTOGRAD = "-autograd"
+
 #: "Equal error": the metric compared (mean over the rollout's measured frames). e_3D, not
 #: e_CD: e_CD x 1e3 with 10k samples has a sampling floor of about 0.13 that every converged
 #: optimiser reaches, so it cannot rank them near convergence.
@@ -117,6 +121,10 @@ def _fno_options(args) -> dict:
 
 
 def _step(name: str, n: int, net=None, lr=None, fno: dict | None = None, **kw):
+    # the classical solvers get the fused closed-form gradient FNOpt's inference uses
+    # (``fused_grad``, like for like); ``<name>-autograd``: the same with autograd's gradient
+    if name.endswith(AUTOGRAD):
+        return _step(name[:-len(AUTOGRAD)], n, net, lr, fno, **{**kw, "fused_grad": False})
     if name == "fnopt":
         fno = fno or {}
         return lambda p, a0: solve_fnopt(net, p, n, **fno)
@@ -130,14 +138,16 @@ def _step(name: str, n: int, net=None, lr=None, fno: dict | None = None, **kw):
         split = net.config.normal_split if net is not None else 0
         return lambda p, a0: solvers.solve_pcg(p, n, normal=True, split=split)
     if name == "lbfgs":
-        return lambda p, a0: solvers.solve_lbfgs(p, n, step=lr or 1.0, **kw)
+        return lambda p, a0: solvers.solve_lbfgs(p, n, step=lr or 1.0,
+                                                 **{"fused_grad": True, **kw})
     if name == "lbfgs-wolfe":
         return lambda p, a0: solvers.solve_lbfgs_wolfe(p, n, **kw)
     if name in LBFGS_NAMED:
-        kw = {**LBFGS_NAMED[name][1], **kw}
+        fused = {"fused_grad": True} if LBFGS_NAMED[name][0] is solvers.solve_lbfgs else {}
+        kw = {**fused, **LBFGS_NAMED[name][1], **kw}
         return lambda p, a0: LBFGS_NAMED[name][0](p, n, **kw)
     lr = lr if lr is not None else DEFAULT_LR[name]
-    return lambda p, a0: solvers.CLASSICAL[name](p, n, lr=lr)
+    return lambda p, a0: solvers.CLASSICAL[name](p, n, lr=lr, **{"fused_grad": True, **kw})
 
 
 #: Initial perturbation (m) of the ``floor`` rows of the ``general`` part: a 1 m sheet's free
@@ -184,6 +194,7 @@ def part_iters(args, net) -> dict:
         [("pgd", n) for n in (10, 30)] + \
         [("lbfgs-wolfe", n) for n in (20, 50, 100, 200)] + \
         [("lbfgs", n) for n in (10, 30, 100, 200)] + \
+        [("lbfgs-autograd", n) for n in (10, 30, 100, 200)] + \
         [("lbfgs-wolfe64", n) for n in (20, 30, 50, 75, 100, 150, 200)] + \
         [(m, n) for m in ("lbfgs-m10", "lbfgs-m20") for n in (30, 50, 75, 100, 150, 200)] + \
         [("lbfgs-pre", n) for n in (5, 10, 20, 30, 50)] + \

@@ -22,7 +22,8 @@ import torch
 
 from .cloth import GRAVITY, positions_from_accel
 
-__all__ = ["loss_grad_fused", "loss_hvp_fused", "gram_fused"]
+__all__ = ["loss_grad_fused", "loss_hvp_fused", "gram_fused", "kernel_constants",
+           "subspace_coefficients"]
 
 
 @nb.njit(cache=True)
@@ -160,14 +161,35 @@ def _per_sheet(v, b: int) -> np.ndarray:
         torch.as_tensor(v).detach().double().reshape(-1).numpy(), (b,)))
 
 
+def kernel_constants(b: int, h: int, w: int, hx, hy, material: dict) -> tuple:
+    """The kernels' per-problem constants: spacings, stiffnesses times area, weights.
+
+    ``(bx, by, ks, ksh, kb, damp, wr, wc, ir, ic)``: ``(B,)`` float64 arrays (spacings, m;
+    stretch, shear and ``1e-3`` bend stiffness times the cell area; damping, 1/s) and the
+    quadrature weights of :func:`_weights`. A caller that solves one problem many times (a
+    :class:`draping.fnopt.solvers.StepProblem`) builds them once and passes them as
+    ``consts`` to :func:`loss_grad_fused` / :func:`loss_hvp_fused`: ~16 small tensor-to-array
+    conversions fewer per call.
+    """
+    bx, by = _per_sheet(hx, b), _per_sheet(hy, b)
+    area = bx * by
+    k = {n: _per_sheet(material.get(n, 0.0), b) for n in ("stretch", "shear", "bend", "damping")}
+    return (bx, by, k["stretch"] * area, k["shear"] * area, 1e-3 * k["bend"] * area,
+            k["damping"], _weights(h, False), _weights(w, False), _weights(h, True),
+            _weights(w, True))
+
+
 def loss_hvp_fused(d: torch.Tensor, a: torch.Tensor, x_prev: torch.Tensor, v_prev: torch.Tensor,
-                   hx, hy, material: dict, dt: float, mass: torch.Tensor) -> torch.Tensor:
+                   hx, hy, material: dict, dt: float, mass: torch.Tensor,
+                   consts: tuple | None = None) -> torch.Tensor:
     """:func:`draping.fnopt.cloth.loss_hvp` in one fused numba pass (not differentiable).
 
     Parameters and units as there: ``d`` ``(K, B, H, W, 3)`` or ``(B, H, W, 3)`` directions
     (m/s^2), ``a``, ``x_prev``, ``v_prev`` ``(B, H, W, 3)``, ``mass`` ``(B, H, W)`` (kg).
     Returns ``H d`` like ``d`` (J s^4/m^2), computed in float64 and returned in ``d``'s dtype:
     equal to the torch function up to rounding (float64 inputs: ~1e-15 relative).
+    ``consts``: :func:`kernel_constants` of ``hx``, ``hy``, ``material`` (built here when not
+    given).
 
     Raises
     ------
@@ -183,14 +205,10 @@ def loss_hvp_fused(d: torch.Tensor, a: torch.Tensor, x_prev: torch.Tensor, v_pre
     if h < 3 or w < 3:
         raise ValueError(f"a: expected a grid of at least 3 x 3 vertices, got {h} x {w}")
     x = positions_from_accel(a.detach(), x_prev, v_prev, dt)
-    area = _per_sheet(hx, b) * _per_sheet(hy, b)
-    k = {n: _per_sheet(material.get(n, 0.0), b) for n in ("stretch", "shear", "bend", "damping")}
+    consts = kernel_constants(b, h, w, hx, hy, material) if consts is None else consts
     out = np.empty(dd.shape, dtype=np.float64)
     _hvp(dd.detach().contiguous().numpy(), x.contiguous().numpy(),
-         mass.detach().contiguous().numpy(), _per_sheet(hx, b), _per_sheet(hy, b),
-         k["stretch"] * area, k["shear"] * area, 1e-3 * k["bend"] * area, k["damping"],
-         _weights(h, False), _weights(w, False), _weights(h, True), _weights(w, True),
-         float(dt), out)
+         mass.detach().contiguous().numpy(), *consts, float(dt), out)
     res = torch.from_numpy(out).to(d.dtype)
     return res[0] if single else res
 
@@ -297,7 +315,7 @@ def _grad(a, x, x_prev, mass, bx, by, ks, ksh, kb, damp, wr, wc, ir, ic, dt, gra
 
 
 def loss_grad_fused(a: torch.Tensor, x_prev: torch.Tensor, v_prev: torch.Tensor, hx, hy,
-                    material: dict, dt: float, mass: torch.Tensor
+                    material: dict, dt: float, mass: torch.Tensor, consts: tuple | None = None
                     ) -> tuple[torch.Tensor, torch.Tensor]:
     """``L_cloth(a)`` and ``dL/da`` in one fused numba pass (closed form, not differentiable).
 
@@ -318,6 +336,8 @@ def loss_grad_fused(a: torch.Tensor, x_prev: torch.Tensor, v_prev: torch.Tensor,
         Time step, s.
     mass : torch.Tensor
         ``(B, H, W)`` lumped masses, kg.
+    consts : tuple, optional
+        :func:`kernel_constants` of ``hx``, ``hy``, ``material`` (built here when not given).
 
     Returns
     -------
@@ -344,15 +364,11 @@ def loss_grad_fused(a: torch.Tensor, x_prev: torch.Tensor, v_prev: torch.Tensor,
         raise ValueError(f"a: expected a grid of at least 3 x 3 vertices, got {h} x {w}")
     a = a.detach()
     x = positions_from_accel(a, x_prev.detach(), v_prev.detach(), dt)
-    area = _per_sheet(hx, b) * _per_sheet(hy, b)
-    k = {n: _per_sheet(material.get(n, 0.0), b) for n in ("stretch", "shear", "bend", "damping")}
+    consts = kernel_constants(b, h, w, hx, hy, material) if consts is None else consts
     out = np.empty(a.shape, dtype=np.float64)
     val = np.empty(b, dtype=np.float64)
     _grad(a.contiguous().numpy(), x.contiguous().numpy(), x_prev.detach().contiguous().numpy(),
-          mass.detach().contiguous().numpy(), _per_sheet(hx, b), _per_sheet(hy, b),
-          k["stretch"] * area, k["shear"] * area, 1e-3 * k["bend"] * area, k["damping"],
-          _weights(h, False), _weights(w, False), _weights(h, True), _weights(w, True),
-          float(dt), GRAVITY, out, val)
+          mass.detach().contiguous().numpy(), *consts, float(dt), GRAVITY, out, val)
     return torch.from_numpy(val).to(a.dtype), torch.from_numpy(out).to(a.dtype)
 
 
@@ -387,3 +403,81 @@ def gram_fused(g: torch.Tensor, dirs: list, hd: list) -> tuple[torch.Tensor, tor
     r = np.empty((b, len(dirs)))
     _gram(d, h, g.detach().reshape(b, -1).contiguous().numpy(), a, r)
     return torch.from_numpy(a), torch.from_numpy(r)
+
+
+@nb.njit(cache=True)
+def _shifted_solve(a, rhs, k, eps, c):
+    """Minimiser ``c[:k]`` over the first ``k`` directions of one sheet's model; returns ``m``.
+
+    :func:`draping.fnopt.solvers.subspace_solve`'s arithmetic on the ``k x k`` block of the
+    symmetrised ``a``: Jacobi scaling (a zero direction gets weight 0), the shift
+    ``mu = 2 max(0, -lambda_min) + eps``, one dense solve.
+    """
+    big = 1e-300
+    for i in range(k):
+        big = max(big, abs(a[i, i]))
+    inv = np.zeros(k)
+    for i in range(k):
+        di = abs(a[i, i])
+        if di > 1e-14 * big:
+            inv[i] = 1.0 / np.sqrt(max(di, 1e-300))
+    s = np.empty((k, k))
+    for i in range(k):
+        for j in range(k):
+            s[i, j] = inv[i] * a[i, j] * inv[j]
+    lam = np.linalg.eigvalsh(s)
+    mu = 2 * max(-lam[0], 0.0) + eps
+    for i in range(k):
+        s[i, i] += mu
+    y = np.linalg.solve(s, inv * rhs[:k])
+    m = 0.0
+    for i in range(k):
+        c[i] = inv[i] * y[i]
+        m -= rhs[i] * c[i]
+    q = 0.0
+    for i in range(k):
+        t = 0.0
+        for j in range(k):
+            t += a[i, j] * c[j]
+        q += c[i] * t
+    return m + 0.5 * q
+
+
+@nb.njit(cache=True)
+def _coefficients(a, r, sub, eps, c, m, cs, ms):
+    n_b, n_dir, _ = a.shape
+    for b in range(n_b):
+        ab = np.empty((n_dir, n_dir))
+        for i in range(n_dir):
+            for j in range(n_dir):
+                ab[i, j] = 0.5 * (a[b, i, j] + a[b, j, i])
+        m[b] = _shifted_solve(ab, r[b], n_dir, eps, c[b])
+        if sub > 0:
+            ms[b] = _shifted_solve(np.ascontiguousarray(ab[:sub, :sub]), r[b], sub, eps, cs[b])
+
+
+def subspace_coefficients(g: torch.Tensor, dirs: list, hd: list, sub: int | None, eps: float):
+    """:func:`draping.fnopt.solvers.subspace_solve` in one fused pass (not differentiable).
+
+    The Gram matrix and right-hand side of :func:`gram_fused`, symmetrised, and the shifted
+    Jacobi-scaled solves over all ``k`` directions and (``sub``) the first ``sub`` ones, per
+    sheet in one numba call: the same float64 arithmetic as the torch path up to the order of
+    sums, without a dozen NumPy or torch operations per solve on ``k x k`` arrays.
+
+    Returns
+    -------
+    tuple
+        ``(c (B, k), m (B,))`` float64; with ``sub``, ``((c, m), (c_sub (B, k), m_sub))``,
+        ``c_sub`` zero beyond its first ``sub`` entries.
+    """
+    b, k = g.shape[0], len(dirs)
+    d = torch.stack(dirs, 1).detach().reshape(b, k, -1).numpy()
+    h = torch.stack(hd, 1).detach().reshape(b, k, -1).numpy()
+    a = np.empty((b, k, k))
+    r = np.empty((b, k))
+    _gram(d, h, g.detach().reshape(b, -1).contiguous().numpy(), a, r)
+    c, m = np.zeros((b, k)), np.empty(b)
+    cs, ms = np.zeros((b, k)), np.empty(b)
+    _coefficients(a, r, 0 if sub is None else int(sub), float(eps), c, m, cs, ms)
+    full = (torch.from_numpy(c), torch.from_numpy(m))
+    return full if sub is None else (full, (torch.from_numpy(cs), torch.from_numpy(ms)))

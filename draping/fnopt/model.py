@@ -106,7 +106,7 @@ class SpectralConv2d(nn.Module):
                                                wc[1, :, :, :m1, :m2])
         return torch.fft.irfft2(out, s=(h, w))
 
-    def forward_dft(self, x: torch.Tensor) -> torch.Tensor:
+    def forward_dft(self, x: torch.Tensor, acc: torch.Tensor | None = None) -> torch.Tensor:
         """:meth:`forward` with the truncated transforms as matrix products (inference).
 
         Only ``2 m1 x m2`` of the ``H x (W / 2 + 1)`` Fourier coefficients are kept, so the
@@ -114,7 +114,9 @@ class SpectralConv2d(nn.Module):
         and ``(2 m2, W)`` matrices (:func:`_dft_matrices`, built in float64 per grid size)
         instead of full FFTs: equal to :meth:`forward` up to float rounding (3e-7
         relative in float32), per layer 0.47 -> 0.30 ms at 100x100, 0.19 -> 0.15 ms at 64x64
-        (one thread; equal at 32x32).
+        (one thread; equal at 32x32). ``acc`` ``(B, C_out, H, W)`` (contiguous): the result is
+        added into it in place by the last product and ``acc`` returned (the FNO's pointwise
+        path; one buffer and one sum fewer).
         """
         b, _, h, w = x.shape
         m1, m2 = min(self.modes, h // 2), min(self.modes, w // 2 + 1)
@@ -122,7 +124,11 @@ class SpectralConv2d(nn.Module):
         r = torch.matmul(x, fw)                                         # (B, C, H, 2 m2)
         f = torch.matmul(fh, torch.complex(r[..., :m2], r[..., m2:]))     # (B, C, 2 m1, m2)
         z = torch.matmul(gh, (f[:, :, None] * self._kept_weights(m1, m2, f.dtype)).sum(1))
-        return torch.matmul(torch.cat([z.real, z.imag], -1), bw)        # z: (B, C_out, H, m2)
+        zr = torch.cat([z.real, z.imag], -1)                            # z: (B, C_out, H, m2)
+        if acc is None:
+            return torch.matmul(zr, bw)
+        acc.view(-1, w).addmm_(zr.view(-1, 2 * m2), bw)
+        return acc
 
     def _kept_weights(self, m1: int, m2: int, dtype: torch.dtype) -> torch.Tensor:
         """The complex weights of the kept rows ``(C_in, C_out, 2 m1, m2)`` (inference).
@@ -196,29 +202,39 @@ class FNO(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Map features ``(B, N_INPUTS, H, W)`` to updates ``(B, 3, H, W)``.
 
-        Without gradients (inference) the sum and the GELUs work in place: the same values bit
-        for bit, but no fresh ``(B, width, H, W)`` buffers, whose first touch (page faults of
-        freshly mapped memory) had cost 35 % / 44 % of the forward at 64x64 / 100x100.
+        Without gradients (inference) the 1x1 convolutions are batched matrix products
+        (:func:`_pointwise`: ``Conv2d``'s 1x1 path copied its input first), the spectral
+        layers' inverse transform accumulates into the pointwise path's output
+        (:meth:`SpectralConv2d.forward_dft`'s ``acc``) and the GELUs work in place: the same
+        operator up to float rounding, with no fresh ``(B, width, H, W)`` buffers, whose first
+        touch (page faults of freshly mapped memory) had cost 35 % / 44 % of the forward at
+        64x64 / 100x100.
         """
-        inplace = not torch.is_grad_enabled()
-        y = self.lift(x)
+        if torch.is_grad_enabled():
+            y = self.lift(x)
+            for k, (sp, pw) in enumerate(zip(self.spectral, self.pointwise)):
+                y = sp(y) + pw(y)
+                if k < len(self.spectral) - 1:
+                    y = nn.functional.gelu(y)
+            return self.proj2(nn.functional.gelu(self.proj1(y)))
+        y = _pointwise(self.lift, x)
         for k, (sp, pw) in enumerate(zip(self.spectral, self.pointwise)):
-            y = _add_pointwise(sp(y), pw, y) if inplace else sp(y) + pw(y)
+            y = sp.forward_dft(y, acc=_pointwise(pw, y))
             if k < len(self.spectral) - 1:
-                y = _gelu(y, inplace)
-        return self.proj2(_gelu(self.proj1(y), inplace))
+                y = _gelu(y, True)
+        return _pointwise(self.proj2, _gelu(_pointwise(self.proj1, y), True))
 
 
-def _add_pointwise(out: torch.Tensor, conv: nn.Conv2d, y: torch.Tensor) -> torch.Tensor:
-    """``out + conv(y)`` for a 1x1 ``conv``, accumulated into ``out`` (inference).
+def _pointwise(conv: nn.Conv2d, y: torch.Tensor) -> torch.Tensor:
+    """A 1x1 ``conv`` of ``y`` ``(B, C, H, W)`` as one batched product with the bias (inference).
 
-    One batched matrix product added in place (``baddbmm``) instead of a fresh ``conv(y)``
-    buffer and a separate sum: equal up to float rounding.
+    ``baddbmm(bias, W, y)``: ``Conv2d``'s value up to float rounding, one operation on the
+    ``(B, C, H W)`` view of ``y``.
     """
     b, c, h, w = y.shape
-    o = out.view(b, -1, h * w).add_(conv.bias[None, :, None])
-    return torch.baddbmm(o, conv.weight[:, :, 0, 0].expand(b, -1, -1), y.reshape(b, c, h * w),
-                         out=o).view(out.shape)
+    wt = conv.weight[:, :, 0, 0]
+    return torch.baddbmm(conv.bias[None, :, None], wt.expand(b, -1, -1),
+                         y.reshape(b, c, h * w)).view(b, wt.shape[0], h, w)
 
 
 def _gelu(y: torch.Tensor, inplace: bool) -> torch.Tensor:
@@ -370,6 +386,9 @@ def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
     k = len(base)
     (c, m), (c2, m2) = subspace_solve(g, dirs, hd, sub=k, fused=p.fused and not create_graph)
     d = torch.stack(dirs, 1)
+    if not create_graph:              # both updates in one product (c2 is 0 beyond k)
+        both = torch.bmm(torch.stack([c, c2], 1).to(g.dtype), d.view(d.shape[0], k + 1, -1))
+        return both[:, 0].view(g.shape), both[:, 1].view(g.shape), m, m2
     da = torch.einsum("bi,bihwc->bhwc", c.to(g.dtype), d)
     da_pcg = torch.einsum("bi,bihwc->bhwc", c2[:, :k].detach().to(g.dtype), d[:, :k].detach())
     return da, da_pcg, m, m2

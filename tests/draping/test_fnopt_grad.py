@@ -13,8 +13,9 @@ torch.set_num_threads(1)
 F64 = torch.float64
 
 
-def _autograd(a, x_prev, v_prev, hx, hy, material, dt, mass):
-    """The reference: ``L_cloth`` and its gradient by autograd (float64 when the inputs are)."""
+def _autograd(a, x_prev, v_prev, hx, hy, material, dt, mass, consts=None):
+    """The reference: ``L_cloth`` and its gradient by autograd (float64 when the inputs are);
+    ``consts`` (the kernel's cached constants) ignored."""
     with torch.enable_grad():
         a = a.detach().requires_grad_(True)
         val = cloth.cloth_loss(a, x_prev, v_prev, hx, hy, material, dt, mass)
