@@ -7,7 +7,9 @@ same products (the same quadrature, term by term) in one pass per direction, acc
 float64, :func:`loss_grad_fused` the loss and its gradient ``dL/da`` (the closed form of
 :func:`draping.fnopt.cloth.energies`' derivative, instead of an autograd forward and backward
 pass) in one pass, and :func:`gram_fused` the subspace step's ``D^T H D`` and ``g^T D`` in one
-pass over the fields without float64 copies of them. All are for inference: they are not
+pass over the fields without float64 copies of them, and :func:`subspace_coefficients` that
+Gram matrix with the subspace step's small shifted solves in one call. The per-problem constants
+(:func:`kernel_constants`) can be built once and passed in. All are for inference: they are not
 differentiable (training's pool steps keep the torch functions and autograd, so ``polygeo
 train-fnopt`` is unchanged; the rollout fine-tuning option, whose products are closed form,
 gets the fused gradient, detached there as before). The torch
@@ -396,13 +398,19 @@ def gram_fused(g: torch.Tensor, dirs: list, hd: list) -> tuple[torch.Tensor, tor
     model, summed in float64 (another order than torch's: equal up to rounding). Not
     differentiable.
     """
-    b = g.shape[0]
-    d = torch.stack(dirs, 1).detach().reshape(b, len(dirs), -1).numpy()
-    h = torch.stack(hd, 1).detach().reshape(b, len(dirs), -1).numpy()
-    a = np.empty((b, len(dirs), len(dirs)))
-    r = np.empty((b, len(dirs)))
-    _gram(d, h, g.detach().reshape(b, -1).contiguous().numpy(), a, r)
+    a, r = _gram_arrays(g, dirs, hd)
     return torch.from_numpy(a), torch.from_numpy(r)
+
+
+def _gram_arrays(g: torch.Tensor, dirs: list, hd: list) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`gram_fused`'s ``(D^T H D, -g^T D)`` as float64 NumPy arrays."""
+    b, k = g.shape[0], len(dirs)
+    d = torch.stack(dirs, 1).detach().reshape(b, k, -1).numpy()
+    h = torch.stack(hd, 1).detach().reshape(b, k, -1).numpy()
+    a = np.empty((b, k, k))
+    r = np.empty((b, k))
+    _gram(d, h, g.detach().reshape(b, -1).contiguous().numpy(), a, r)
+    return a, r
 
 
 @nb.njit(cache=True)
@@ -471,11 +479,7 @@ def subspace_coefficients(g: torch.Tensor, dirs: list, hd: list, sub: int | None
         ``c_sub`` zero beyond its first ``sub`` entries.
     """
     b, k = g.shape[0], len(dirs)
-    d = torch.stack(dirs, 1).detach().reshape(b, k, -1).numpy()
-    h = torch.stack(hd, 1).detach().reshape(b, k, -1).numpy()
-    a = np.empty((b, k, k))
-    r = np.empty((b, k))
-    _gram(d, h, g.detach().reshape(b, -1).contiguous().numpy(), a, r)
+    a, r = _gram_arrays(g, dirs, hd)
     c, m = np.zeros((b, k)), np.empty(b)
     cs, ms = np.zeros((b, k)), np.empty(b)
     _coefficients(a, r, 0 if sub is None else int(sub), float(eps), c, m, cs, ms)

@@ -376,7 +376,7 @@ def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
         (m/s^2), and their model decreases ``(B,)`` (J, float64, <= 0).
     """
     f = fno_correction(model, p, z, z_prev, da_prev, const, grid=grid)
-    base = [-z * p.free, da_prev] + (list(zn) if zn is not None else [])
+    base = [-z * p.free3, da_prev] + (list(zn) if zn is not None else [])
     if create_graph:
         hd = p.hessian_products(base, hvp) + [hvp(f, create_graph=True)]
     else:
@@ -482,7 +482,7 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
     val, g, hvp = p.grad_hvp(a)
     for k in range(iters):
         more = k < iters - 1              # a next iteration needs the gradient at a + dn
-        z = pre(g) * p.free
+        z = pre(g) * p.free3
         zn = normal_directions(p, g, pn, model.config.normal_split) if pn is not None else None
         with torch.no_grad():
             dn, dn_pcg, _, m_pcg = subspace_update(model, p, g, hvp, z, z_prev, da, zn=zn,

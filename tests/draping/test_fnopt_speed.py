@@ -237,3 +237,17 @@ def test_benchmark_gives_the_classical_rows_the_fused_gradient(monkeypatch):
         bm._step(name, 3)(p, None)
     assert seen == [("solve_lbfgs", True), ("solve_lbfgs", False), ("solve_gd", True),
                     ("solve_adam", False), ("solve_lbfgs", True), ("solve_lbfgs_wolfe", None)]
+
+
+def test_free3_is_the_expanded_mask_and_follows_changes():
+    p = _problem()
+    f3 = p.free3
+    assert f3.shape == p.free.shape[:-1] + (3,) and f3.is_contiguous()
+    assert torch.equal(f3, p.free.expand_as(f3))
+    assert p.free3 is f3                                   # cached
+    a = torch.randn(p.x_prev.shape, generator=torch.Generator().manual_seed(2), dtype=F64)
+    assert torch.equal(p.compose(a), a * p.free + p.a_fixed)
+    p.free[0, 0, 1, 0] = 0.0                               # in place: rebuilt
+    assert float(p.free3[0, 0, 1].abs().sum()) == 0.0
+    p.free = torch.ones_like(p.free)                       # replaced: rebuilt
+    assert bool((p.free3 == 1).all())
