@@ -97,6 +97,29 @@ def test_gradcheck_points_to_residual(gen):
     torch.autograd.gradcheck(lambda p: cv.singular_values(cv.vertex_covariance(p, idx)), (x,))
 
 
+def test_closed_form_backward_equals_autograd_of_the_formula(ring_mesh, gen):
+    # The covariance's hand-written backward against autograd through eq. (31) written out,
+    # on a batch with padded (masked) neighbourhoods; double backward must raise, not be wrong.
+    v, idx, mask = ring_mesh
+    idx = torch.as_tensor(np.where(mask, idx, -1))
+    x = torch.as_tensor(v)[None].repeat(2, 1, 1) + 0.05 * torch.rand(2, len(v), 3, generator=gen,
+                                                                      dtype=torch.float64)
+    g = torch.rand(2, len(v), 3, 3, generator=gen, dtype=torch.float64)
+    a = x.clone().requires_grad_(True)
+    (cv.vertex_covariance(a, idx) * g).sum().backward()
+    b = x.clone().requires_grad_(True)
+    m = (idx >= 0).to(b.dtype)[..., None]
+    nbrs = b[..., idx.clamp_min(0), :]
+    mean = (nbrs * m).sum(-2) / m.sum(-2)
+    d = (nbrs - mean[..., None, :]) * m
+    ((d.transpose(-1, -2) @ d / m.sum(-2)[..., None]) * g).sum().backward()
+    torch.testing.assert_close(a.grad, b.grad, rtol=1e-10, atol=1e-12)
+    c = x.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(cv.vertex_covariance(c, idx).sum(), c, create_graph=True)
+    with pytest.raises(RuntimeError):
+        grad.sum().backward()
+
+
 def test_torch_in_torch_out(ring_mesh):
     v, idx, mask = ring_mesh
     c = cv.vertex_covariance(torch.from_numpy(v).float(), torch.from_numpy(idx))
