@@ -25,7 +25,6 @@ from __future__ import annotations
 from typing import Any
 
 import torch
-from torch.autograd.function import once_differentiable
 
 from .checks import (
     as_tensor,
@@ -96,35 +95,40 @@ def vertex_covariance(points: Any, index: Any, mask: Any = None) -> Any:
     return to_like(cov, numpy_in)
 
 
+def _centred_neighbours(x: torch.Tensor, idx: torch.Tensor, w: torch.Tensor):
+    """Masked, centred neighbours ``(..., N, K, 3)`` and valid-neighbour counts ``(N, 1)``."""
+    nb = x.index_select(-2, idx.reshape(-1)).reshape(*x.shape[:-2], *idx.shape, 3)
+    cnt = w.sum(-2).clamp_min(1.0)  # (N, 1)
+    mean = (nb * w).sum(-2) / cnt  # (..., N, 3)
+    return (nb - mean[..., None, :]) * w, cnt
+
+
 class _Covariance(torch.autograd.Function):
-    """Neighbourhood covariances with a closed-form backward (first derivatives only).
+    """Neighbourhood covariances with a closed-form backward.
 
     With ``D`` the masked, centred neighbours of a vertex (``K x 3``), ``n`` their count and
     ``G`` the incoming gradient, ``dL/dx_j = D_j (G + G^T) / n`` scattered to the neighbours;
     the centring's own term is zero because the centred neighbours sum to zero. Autograd
     through the gather, the centring and the product costs ~1.6x this on a 5,000-vertex
-    garment. Double backward raises (``once_differentiable``).
+    garment. Under ``create_graph=True`` the backward rebuilds ``D`` from the points in the
+    graph, so second derivatives (Hessian-vector products, ``gradgradcheck``) stay exact.
     """
 
     @staticmethod
     def forward(ctx, x, idx, w):  # noqa: D102 - see the class docstring
-        nb = x.index_select(-2, idx.reshape(-1)).reshape(*x.shape[:-2], *idx.shape, 3)
-        cnt = w.sum(-2).clamp_min(1.0)  # (N, 1)
-        mean = (nb * w).sum(-2) / cnt  # (..., N, 3)
-        d = (nb - mean[..., None, :]) * w  # (..., N, K, 3)
-        ctx.save_for_backward(d, idx, cnt)
-        ctx.n_points = x.shape[-2]
+        d, cnt = _centred_neighbours(x, idx, w)
+        ctx.save_for_backward(x, d, idx, w, cnt)
         return d.transpose(-1, -2) @ d / cnt[..., None]
 
     @staticmethod
-    @once_differentiable
     def backward(ctx, grad):  # noqa: D102 - see the class docstring
-        d, idx, cnt = ctx.saved_tensors
+        x, d, idx, w, cnt = ctx.saved_tensors
+        if torch.is_grad_enabled():  # create_graph: the backward must be differentiable in x
+            d, _ = _centred_neighbours(x, idx, w)
         g = (grad + grad.transpose(-1, -2)) / cnt[..., None]  # (..., N, 3, 3)
         gnb = d @ g  # (..., N, K, 3); zero on padding (d is masked)
-        out = gnb.new_zeros(*gnb.shape[:-3], ctx.n_points, 3)
-        out.index_add_(-2, idx.reshape(-1), gnb.reshape(*gnb.shape[:-3], -1, 3))
-        return out, None, None
+        out = gnb.new_zeros(*gnb.shape[:-3], x.shape[-2], 3)
+        return out.index_add(-2, idx.reshape(-1), gnb.reshape(*gnb.shape[:-3], -1, 3)), None, None
 
 
 def singular_values(cov: Any) -> Any:
@@ -158,7 +162,7 @@ def singular_values(cov: Any) -> Any:
 
 
 def _shifted_det3(c: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
-    """``det(C - lam_j I)`` for each ``lam_j``, by cofactors (smooth everywhere, unlike LU's backward).
+    """``det(C - lam_j I)`` for each ``lam_j``, by cofactors (smooth, unlike LU's backward).
 
     ``c`` is ``(..., 3, 3)``, ``lam`` ``(..., 3)`` (three shifts per matrix); returns ``(..., 3)``.
     The shift only touches the diagonal, so the nine entries are read once and broadcast over

@@ -99,7 +99,7 @@ def test_gradcheck_points_to_residual(gen):
 
 def test_closed_form_backward_equals_autograd_of_the_formula(ring_mesh, gen):
     # The covariance's hand-written backward against autograd through eq. (31) written out,
-    # on a batch with padded (masked) neighbourhoods; double backward must raise, not be wrong.
+    # on a batch with padded (masked) neighbourhoods, first and second derivatives.
     v, idx, mask = ring_mesh
     idx = torch.as_tensor(np.where(mask, idx, -1))
     x = torch.as_tensor(v)[None].repeat(2, 1, 1) + 0.05 * torch.rand(2, len(v), 3, generator=gen,
@@ -114,10 +114,29 @@ def test_closed_form_backward_equals_autograd_of_the_formula(ring_mesh, gen):
     d = (nbrs - mean[..., None, :]) * m
     ((d.transpose(-1, -2) @ d / m.sum(-2)[..., None]) * g).sum().backward()
     torch.testing.assert_close(a.grad, b.grad, rtol=1e-10, atol=1e-12)
-    c = x.clone().requires_grad_(True)
-    (grad,) = torch.autograd.grad(cv.vertex_covariance(c, idx).sum(), c, create_graph=True)
-    with pytest.raises(RuntimeError):
-        grad.sum().backward()
+    # Hessian-vector product of a non-linear function of the covariances: against the formula's
+    def hvp(cov_fn):
+        c = x.clone().requires_grad_(True)
+        (grad,) = torch.autograd.grad((cov_fn(c) * g).square().sum(), c, create_graph=True)
+        (h,) = torch.autograd.grad((grad * g[..., 0]).sum(), c)
+        return h
+
+    def formula(p):
+        nbrs = p[..., idx.clamp_min(0), :]
+        d = (nbrs - ((nbrs * m).sum(-2) / m.sum(-2))[..., None, :]) * m
+        return d.transpose(-1, -2) @ d / m.sum(-2)[..., None]
+
+    torch.testing.assert_close(hvp(lambda p: cv.vertex_covariance(p, idx)), hvp(formula),
+                               rtol=1e-10, atol=1e-12)
+
+
+def test_gradgradcheck_covariance(ring_mesh, gen):
+    v, idx, _ = ring_mesh
+    x = torch.as_tensor(v)[:12].clone() + 0.05 * torch.rand(12, 3, generator=gen,
+                                                             dtype=torch.float64)
+    idx = torch.as_tensor(idx)[:12].clamp(max=11)
+    x.requires_grad_(True)
+    torch.autograd.gradgradcheck(lambda p: cv.vertex_covariance(p, idx), (x,))
 
 
 def test_torch_in_torch_out(ring_mesh):
