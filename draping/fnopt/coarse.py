@@ -17,8 +17,25 @@ import torch
 
 from polygeo.checks import check_int
 
-__all__ = ["coarse_shape", "interpolation_matrix", "coarse_free", "FNOGrid", "fno_grid",
-           "restrict", "prolong", "coarse_spacing", "free_rms"]
+__all__ = ["check_grid_option", "coarse_shape", "interpolation_matrix", "coarse_free",
+           "FNOGrid", "fno_grid", "restrict", "prolong", "coarse_spacing", "free_rms"]
+
+
+def check_grid_option(value, name: str) -> int:
+    """An FNO-grid option (``coarse_res``, ``stiffness_res``, ``fno_coarse``): 0 or an int >= 2.
+
+    0 means off; otherwise the number of vertices of the coarse grid's longer side.
+
+    Raises
+    ------
+    TypeError
+        If ``value`` is not an int.
+    ValueError
+        If ``value`` is negative or 1.
+    """
+    if check_int(value, name, low=0) == 1:
+        raise ValueError(f"{name}: expected 0 (off) or an int >= 2, got 1")
+    return value
 
 
 def coarse_shape(h: int, w: int, longer: int) -> tuple[int, int]:
@@ -122,7 +139,9 @@ def fno_grid(free: torch.Tensor, shape: tuple[int, int], const: torch.Tensor,
 
 
 def free_rms(f: torch.Tensor, free: torch.Tensor) -> torch.Tensor:
-    """RMS ``(B,)`` of a field ``(B, Hc, Wc, 3)`` over the free vertices ``free`` ``(B, Hc, Wc, 1)``.
+    """RMS ``(B,)`` of a field ``(B, Hc, Wc, 3)`` over the free vertices of ``free``.
+
+    ``free``: the coarse free mask ``(B or 1, Hc, Wc, 1)``.
 
     :meth:`draping.fnopt.solvers.StepProblem.residual_rms` on the coarse grid.
     """

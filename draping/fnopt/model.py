@@ -22,8 +22,6 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from polygeo.checks import check_int
-
 from . import coarse
 from .solvers import (
     StepProblem,
@@ -421,9 +419,7 @@ def fno_inputs(p: StepProblem, dtype: torch.dtype, coarse_res: int = 0,
         If an option is not an int.
     """
     for name, v in (("coarse_res", coarse_res), ("stiffness_res", stiffness_res)):
-        check_int(v, name, low=0)
-        if v == 1:
-            raise ValueError(f"{name}: expected 0 (off) or an int >= 2, got 1")
+        coarse.check_grid_option(v, name)
     if coarse_res and stiffness_res:
         raise ValueError("coarse_res and stiffness_res: expected at most one of them set, got "
                          f"{coarse_res} and {stiffness_res}")

@@ -16,10 +16,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from polygeo.checks import check_int
-
 from ..metrics import relative_vertex_error
 from . import cloth
+from .coarse import check_grid_option
 from .handles import DT, check_motion
 from .settings import OPTIMIZERS
 from .solvers import CLASSICAL, REFERENCE_TOL, Rollout, rollout, solve_reference
@@ -66,8 +65,7 @@ class SimSettings:
                 self.frames < 1:
             raise ValueError(f"frames: expected an int >= 1, got {self.frames!r}")
         self.res = tuple(int(r) for r in self.res)
-        if check_int(self.fno_coarse, "fno_coarse", low=0) == 1:
-            raise ValueError("fno_coarse: expected 0 (off) or an int >= 2, got 1")
+        check_grid_option(self.fno_coarse, "fno_coarse")
 
     def sheet(self) -> cloth.Sheet:
         """The grid sheet."""

@@ -90,12 +90,12 @@ class StepProblem:
 
     @property
     def free3(self) -> torch.Tensor:
-        """``free`` expanded to ``(B or 1, H, W, 3)``, contiguous (cached; rebuilt when ``free``
-        is replaced or changed in place).
+        """``free`` expanded to ``(B or 1, H, W, 3)``, contiguous, cached.
 
-        The same products as with ``free``, but a product with a size-1 coordinate axis
-        broadcast is 5-6x slower in torch than one broadcast over the batch only (a
-        ``(5, 1, 64, 64, 3)`` field: 0.056 against 0.009 ms).
+        Rebuilt when ``free`` is replaced or changed in place. The same products as with
+        ``free``, but a product with a size-1 coordinate axis broadcast is 5-6x slower in torch
+        than one broadcast over the batch only (a ``(5, 1, 64, 64, 3)`` field: 0.056 against
+        0.009 ms).
         """
         key = (id(self.free), self.free._version)
         cache = self.__dict__.get("_free3")
