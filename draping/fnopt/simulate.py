@@ -18,10 +18,11 @@ import torch
 
 from ..metrics import relative_vertex_error
 from . import cloth
+from .classical import CLASSICAL, REFERENCE_TOL, solve_reference
 from .coarse import check_grid_option
 from .handles import DT, check_motion
+from .rollouts import Rollout, rollout
 from .settings import OPTIMIZERS
-from .solvers import CLASSICAL, REFERENCE_TOL, Rollout, rollout, solve_reference
 
 __all__ = ["SimSettings", "OPTIMIZERS", "DEFAULT_LR", "step_function", "run", "e_cd",
            "frame_metrics", "reference_rollout", "write_outputs"]

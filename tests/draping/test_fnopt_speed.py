@@ -14,7 +14,7 @@ import pytest
 import torch
 from torch import nn
 
-from draping.fnopt import cloth, model, solvers
+from draping.fnopt import cloth, model, preconditioners, solvers
 from draping.fnopt.cloth import Material, Sheet
 from draping.fnopt.handles import DT
 
@@ -161,7 +161,7 @@ def test_dct_solve_by_matrices_equals_scipy(shape):
     d = den if len(shape) == 3 else den[..., None]
     want = idctn(dctn(z, type=2, axes=(1, 2), norm="ortho") / d, type=2, axes=(1, 2),
                  norm="ortho")
-    got = solvers._dct_solve(z, den)
+    got = preconditioners._dct_solve(z, den)
     assert got.shape == want.shape and got.flags.c_contiguous
     assert np.abs(got - want).max() <= 1e-13 * np.abs(want).max()
 
