@@ -109,6 +109,10 @@ THESIS_LBFGS = "lbfgs"
 #: the rows without it get the fused closed-form gradient (``fused_grad``) since session 12.
 AUTOGRAD = "-autograd"
 
+#: The rows without a gradient option, so without an ``-autograd`` variant: FNOpt and the
+#: DCT-metric methods take the step problem's own gradient and Hessian products.
+NO_GRADIENT_OPTION = ("fnopt", "fnopt-line", "pgd", "pcg", "pcg-n")
+
 #: "Equal error": the metric compared (mean over the rollout's measured frames). e_3D, not
 #: e_CD: e_CD x 1e3 with 10k samples has a sampling floor of about 0.13 that every converged
 #: optimiser reaches, so it cannot rank them near convergence.
@@ -124,7 +128,11 @@ def _step(name: str, n: int, net=None, lr=None, fno: dict | None = None, **kw):
     # the classical solvers get the fused closed-form gradient FNOpt's inference uses
     # (``fused_grad``, like for like); ``<name>-autograd``: the same with autograd's gradient
     if name.endswith(AUTOGRAD):
-        return _step(name[:-len(AUTOGRAD)], n, net, lr, fno, **{**kw, "fused_grad": False})
+        base = name[:-len(AUTOGRAD)]
+        if base in NO_GRADIENT_OPTION:
+            raise ValueError(f"optimizer: {name!r}: {base} has no autograd variant (its "
+                             f"gradient and products come from the step problem itself)")
+        return _step(base, n, net, lr, fno, **{**kw, "fused_grad": False})
     if name == "fnopt":
         fno = fno or {}
         return lambda p, a0: solve_fnopt(net, p, n, **fno)

@@ -192,7 +192,7 @@ def _as_float64(p: StepProblem) -> StepProblem:
 
 def solve_lbfgs_wolfe(p: StepProblem, iters: int, history: int = 10, a0=None,
                       max_eval: int | None = None, info: dict | None = None,
-                      float64: bool = False) -> torch.Tensor:
+                      float64: bool = False, fused_grad: bool = False) -> torch.Tensor:
     """L-BFGS with a strong-Wolfe line search (``torch.optim.LBFGS``), the fair baseline.
 
     PyTorch's own implementation (two-loop recursion, cubic-interpolation strong-Wolfe line
@@ -202,11 +202,14 @@ def solve_lbfgs_wolfe(p: StepProblem, iters: int, history: int = 10, a0=None,
     evaluations allowed in all (default ``2 * iters``, the line search's extra ones included);
     ``info`` receives ``evaluations`` and ``residual`` (RMS, m/s^2). ``float64``: solve in
     float64 (in float32 the line search stops once the decrease is below the loss' rounding).
+    ``fused_grad``: energies and gradients by the fused kernel (:meth:`StepProblem.loss_grad`'s
+    ``fused``; default autograd).
     """
     if float64 and p.x_prev.dtype != torch.float64:
         p64 = _as_float64(p)
         a0 = None if a0 is None else a0.double()
-        out = solve_lbfgs_wolfe(p64, iters, history, a0, max_eval, info)
+        out = solve_lbfgs_wolfe(p64, iters, history, a0, max_eval, info,
+                                fused_grad=fused_grad)
         p.evals += p64.evals
         return out.to(p.x_prev.dtype)
     sq = p.mass[..., None].sqrt() * p.dt
@@ -218,7 +221,7 @@ def solve_lbfgs_wolfe(p: StepProblem, iters: int, history: int = 10, a0=None,
     evals0 = p.evals
 
     def closure():
-        val, g = p.loss_grad(b.detach() / sq)
+        val, g = p.loss_grad(b.detach() / sq, fused=fused_grad)
         b.grad = g / sq * p.free3
         return val.sum()
 
@@ -226,7 +229,7 @@ def solve_lbfgs_wolfe(p: StepProblem, iters: int, history: int = 10, a0=None,
     a = b.detach() / sq
     if info is not None:
         info["evaluations"] = p.evals - evals0
-        info["residual"] = p.residual_rms(p.precondition(p.loss_grad(a)[1]))
+        info["residual"] = p.residual_rms(p.precondition(p.loss_grad(a, fused=fused_grad)[1]))
     return p.compose(a)
 
 

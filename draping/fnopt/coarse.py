@@ -17,6 +17,8 @@ import torch
 
 from polygeo.checks import check_int
 
+from .step_problem import free_rms  # the one home; re-exported
+
 __all__ = ["check_grid_option", "coarse_shape", "interpolation_matrix", "coarse_free",
            "FNOGrid", "fno_grid", "restrict", "prolong", "coarse_spacing", "free_rms"]
 
@@ -136,17 +138,6 @@ def fno_grid(free: torch.Tensor, shape: tuple[int, int], const: torch.Tensor,
     return FNOGrid(interpolation_matrix(h, hc, dtype), interpolation_matrix(w, wc, dtype),
                    interpolation_matrix(hc, h, dtype), interpolation_matrix(wc, w, dtype),
                    coarse_free(free, shape).to(dtype), const)
-
-
-def free_rms(f: torch.Tensor, free: torch.Tensor) -> torch.Tensor:
-    """RMS ``(B,)`` of a field ``(B, Hc, Wc, 3)`` over the free vertices of ``free``.
-
-    ``free``: the coarse free mask ``(B or 1, Hc, Wc, 1)``.
-
-    :meth:`draping.fnopt.solvers.StepProblem.residual_rms` on the coarse grid.
-    """
-    n = (free.expand(f.shape[:-1] + (1,)).sum((1, 2, 3)) * 3).clamp(min=1)
-    return ((f * free).square().sum((1, 2, 3)) / n).sqrt()
 
 
 def restrict(f: torch.Tensor, grid: FNOGrid) -> torch.Tensor:

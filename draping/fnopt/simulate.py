@@ -81,7 +81,13 @@ class SimSettings:
 
 
 def step_function(settings: SimSettings, model=None):
-    """``step(problem, a_prev) -> a`` for the settings' optimiser (``model``: an FNO)."""
+    """``step(problem, a_prev) -> a`` for the settings' optimiser (``model``: an FNO).
+
+    GD, Adam and L-BFGS take the fused closed-form gradient (``fused_grad``: autograd's values
+    up to rounding, 2.7x cheaper L-BFGS iterations at 64x64; autograd where it does not apply,
+    e.g. with repulsion), as FNOpt's inference and ``benchmarks/bm_fnopt.py``'s classical rows
+    do, so that ``polygeo simulate`` and the benchmark time the same solver.
+    """
     name, n = settings.optimizer, settings.iters
     if name == "reference":
         return lambda p, a0: solve_reference(p, a0)
@@ -93,8 +99,8 @@ def step_function(settings: SimSettings, model=None):
         return lambda p, a0: solve_fnopt(net, p, n, coarse_res=k)
     lr = settings.lr if settings.lr is not None else DEFAULT_LR[name]
     if name == "lbfgs":
-        return lambda p, a0: CLASSICAL[name](p, n, step=lr)
-    return lambda p, a0: CLASSICAL[name](p, n, lr=lr)
+        return lambda p, a0: CLASSICAL[name](p, n, step=lr, fused_grad=True)
+    return lambda p, a0: CLASSICAL[name](p, n, lr=lr, fused_grad=True)
 
 
 def run(settings: SimSettings, model=None, progress=None) -> Rollout:

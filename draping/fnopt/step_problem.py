@@ -20,7 +20,7 @@ import torch
 from . import cloth
 from .handles import DT
 
-__all__ = ["StepProblem", "make_problem", "subspace_solve"]
+__all__ = ["StepProblem", "make_problem", "subspace_solve", "free_rms"]
 
 
 @dataclass
@@ -247,9 +247,20 @@ class StepProblem:
         return g / (self.mass[..., None] * self.dt * self.dt)
 
     def residual_rms(self, r: torch.Tensor) -> torch.Tensor:
-        """RMS ``(B,)`` over the free vertices' residual components."""
-        n = (self.free.expand(r.shape[:-1] + (1,)).sum((1, 2, 3)) * 3).clamp(min=1)
-        return ((r * self.free3).square().sum((1, 2, 3)) / n).sqrt()
+        """RMS ``(B,)`` over the free vertices' residual components (:func:`free_rms`)."""
+        return free_rms(r, self.free3)
+
+
+def free_rms(f: torch.Tensor, free: torch.Tensor) -> torch.Tensor:
+    """RMS ``(B,)`` of a field ``f`` ``(B, H, W, 3)`` over the components at free vertices.
+
+    ``free``: a 0/1 mask ``(B or 1, H, W, 1 or 3)`` (1 at free vertices); the mean is over
+    the free vertices' 3 components (over 1 if there is none, giving 0). The one home of this
+    RMS: :meth:`StepProblem.residual_rms` (the fine grid's mask) and the coarse FNO grid's
+    normalisation (:func:`draping.fnopt.coarse.free_rms`, the coarse mask) both call it.
+    """
+    n = free.expand(f.shape).sum((1, 2, 3)).clamp(min=1)
+    return ((f * free).square().sum((1, 2, 3)) / n).sqrt()
 
 
 def subspace_solve(g: torch.Tensor, dirs: list, hd: list, sub: int | None = None,

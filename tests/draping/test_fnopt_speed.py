@@ -251,3 +251,26 @@ def test_free3_is_the_expanded_mask_and_follows_changes():
     assert float(p.free3[0, 0, 1].abs().sum()) == 0.0
     p.free = torch.ones_like(p.free)                       # replaced: rebuilt
     assert bool((p.free3 == 1).all())
+
+
+def test_free_rms_is_one_rms_for_both_grids():
+    """``free_rms`` (the one home of ``StepProblem.residual_rms`` and ``coarse.free_rms``):
+    analytic values with a 1- or 3-channel mask, 0 without free vertices."""
+    from draping.fnopt import coarse
+    from draping.fnopt.step_problem import free_rms
+
+    assert coarse.free_rms is free_rms
+    free = torch.zeros(1, 4, 5, 1)
+    free[0, 1:3, 1:4] = 1.0                                   # 6 free vertices
+    f = torch.full((2, 4, 5, 3), 7.0)
+    f[1] = 0.0
+    f[1, 1:3, 1:4] = torch.tensor([1.0, 2.0, 2.0])            # each free vertex: |.|^2 = 9
+    f[1, 0, 0] = 100.0                                        # at a handle: ignored
+    want = torch.tensor([7.0, math.sqrt(9.0 / 3)])
+    assert torch.allclose(free_rms(f, free), want, rtol=1e-6)
+    assert torch.equal(free_rms(f, free.expand(1, 4, 5, 3).contiguous()), free_rms(f, free))
+    assert torch.equal(free_rms(f, torch.zeros_like(free)), torch.zeros(2))
+    p = _problem()
+    r = torch.randn(p.x_prev.shape, generator=torch.Generator().manual_seed(3), dtype=F64)
+    n = float(p.free.sum()) * 3
+    assert torch.allclose(p.residual_rms(r), ((r * p.free) ** 2).sum((1, 2, 3)).div(n).sqrt())

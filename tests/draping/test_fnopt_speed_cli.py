@@ -1,0 +1,118 @@
+"""``polygeo simulate``'s classical optimisers and ``bm_fnopt``'s rows solve with the same
+gradient (the fused closed form), and the benchmark's ``-autograd`` row names are all usable."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from draping.fnopt import classical, cloth
+from draping.fnopt.cloth import Material, Sheet
+from draping.fnopt.simulate import SimSettings, step_function
+from draping.fnopt.step_problem import make_problem
+
+ROOT = Path(__file__).resolve().parents[2]
+F64 = torch.float64
+
+
+@pytest.fixture(scope="module")
+def bm():
+    spec = importlib.util.spec_from_file_location("bm_fnopt", ROOT / "benchmarks" / "bm_fnopt.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("bm_fnopt", mod)
+    if not hasattr(sys.modules["bm_fnopt"], "_step"):
+        spec.loader.exec_module(sys.modules["bm_fnopt"])
+    return sys.modules["bm_fnopt"]
+
+
+def _problem(n=9, dtype=torch.float32, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    sheet = Sheet(n, n + 2)
+    x = cloth.rest_positions(sheet, "vertical", F64)[None]
+    x = x + 1e-3 * torch.randn(x.shape, generator=gen, dtype=F64)
+    v = 0.1 * torch.randn(x.shape, generator=gen, dtype=F64)
+    idx = cloth.handle_indices("diagonal", n, n + 2)
+    tgt = x[:, idx[:, 0], idx[:, 1]] + 1e-3
+    mat = Material(damping=0.3).tensors(1, F64)
+    return make_problem(x.to(dtype), v.to(dtype), idx, tgt.to(dtype), sheet.hx, sheet.hy,
+                        {k: t.to(dtype) for k, t in mat.items()})
+
+
+def test_simulate_cli_lbfgs_rollout_equals_the_benchmarks(bm, tmp_path):
+    """The CLI's ``--optimizer lbfgs`` rollout is the benchmark's ``lbfgs`` row bit for bit
+    (positions as written, float32, and per-frame L_cloth)."""
+    from polygeo.cli import main
+    from polygeo.io import read_mesh
+
+    out = tmp_path / "sim"
+    args = ["--res", "12", "--frames", "4", "--iters", "30", "--handles", "diagonal",
+            "--motion", "xyz"]
+    rc = main(["simulate", *args, "--optimizer", "lbfgs", "--no-reference", "-o", str(out),
+               "--quiet", "--gif-every", "4"])
+    assert rc in (0, None)
+    s = SimSettings(res=(12, 12), frames=4, iters=30, handles="diagonal", motion="xyz",
+                    optimizer="lbfgs")
+    ro, err, _ = bm._rollout(s, bm._step("lbfgs", 30))
+    assert err is None
+    m = json.loads((out / "metrics.json").read_text())
+    assert [r["L_cloth"] for r in m["frames"]] == ro.loss
+    for k in range(5):
+        got = np.asarray(read_mesh(out / "meshes" / f"{k:06d}.ply").points)
+        assert np.array_equal(got, ro.positions[k].reshape(-1, 3).numpy()), k
+
+
+@pytest.mark.parametrize("name", ["lbfgs", "gd", "adam"])
+def test_simulate_classical_steps_take_the_fused_gradient(bm, name):
+    """``simulate.step_function`` solves as ``bm_fnopt._step`` (fused) does, bit for bit, and
+    not as the ``-autograd`` row does."""
+    n = 6
+    s = SimSettings(res=(9, 11), optimizer=name, iters=n, lr=1e-4 if name == "gd" else None)
+    p = _problem()
+    got = step_function(s)(p, None)
+    want = bm._step(name, n, lr=s.lr)(_problem(), None)
+    assert torch.equal(got, want)
+    calls = []
+    orig = classical.CLASSICAL[name]
+
+    def spy(p, iters, **kw):
+        calls.append(kw.get("fused_grad"))
+        return orig(p, iters, **kw)
+
+    try:
+        classical.CLASSICAL[name] = spy
+        step_function(s)(_problem(), None)
+    finally:
+        classical.CLASSICAL[name] = orig
+    assert calls == [True]
+
+
+@pytest.mark.parametrize("name", ["lbfgs-wolfe", "lbfgs-wolfe64"])
+def test_strong_wolfe_autograd_rows_run(bm, name):
+    """``lbfgs-wolfe-autograd`` / ``lbfgs-wolfe64-autograd`` (a TypeError before): the
+    strong-Wolfe rows already use autograd's gradient, so they equal the plain rows."""
+    got = bm._step(name + "-autograd", 4)(_problem(), None)
+    want = bm._step(name, 4)(_problem(), None)
+    assert torch.equal(got, want)
+
+
+def test_strong_wolfe_fused_gradient_matches_autograd():
+    p = _problem(dtype=F64)
+    a = classical.solve_lbfgs_wolfe(p, 5, fused_grad=True)
+    b = classical.solve_lbfgs_wolfe(_problem(dtype=F64), 5)
+    assert torch.allclose(a, b, rtol=1e-9, atol=1e-9 * float(b.abs().max()))
+    info = {}
+    classical.solve_lbfgs_wolfe(_problem(), 3, float64=True, fused_grad=True, info=info)
+    assert info["evaluations"] >= 3 and bool(torch.isfinite(info["residual"]).all())
+
+
+@pytest.mark.parametrize("name", ["fnopt-autograd", "pcg-autograd", "pgd-autograd",
+                                  "pcg-n-autograd"])
+def test_rows_without_a_gradient_option_have_no_autograd_variant(bm, name):
+    with pytest.raises(ValueError, match="no autograd variant"):
+        bm._step(name, 3)
