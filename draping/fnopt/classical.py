@@ -13,7 +13,12 @@ import warnings
 
 import torch
 
-from .preconditioners import laplace_preconditioner, normal_directions, normal_preconditioner
+from .preconditioners import (
+    curvature_bound,
+    laplace_preconditioner,
+    normal_directions,
+    normal_preconditioner,
+)
 from .step_problem import StepProblem
 
 __all__ = ["solve_gd", "solve_pgd", "solve_pcg", "solve_adam", "solve_lbfgs",
@@ -28,12 +33,17 @@ __all__ = ["solve_gd", "solve_pgd", "solve_pcg", "solve_adam", "solve_lbfgs",
 REFERENCE_TOL = 5e-5
 
 
-def solve_gd(p: StepProblem, iters: int, lr: float = 0.5, a0=None,
+def solve_gd(p: StepProblem, iters: int, lr: float | None = 0.5, a0=None,
              fused_grad: bool = False) -> torch.Tensor:
     """Gradient descent in the mass metric: ``a -= lr * r`` (``lr`` dimensionless).
 
-    ``fused_grad``: gradients by the fused kernel (:meth:`StepProblem.loss_grad`'s ``fused``).
+    ``lr=None``: per sheet ``1 /`` :func:`~draping.fnopt.preconditioners.curvature_bound`, a
+    stable step at any resolution (a fixed one diverges on fine grids: the mass-metric
+    curvature grows as ``1 / h^2``). ``fused_grad``: gradients by the fused kernel
+    (:meth:`StepProblem.loss_grad`'s ``fused``).
     """
+    if lr is None:
+        lr = (1.0 / curvature_bound(p)).to(p.x_prev.dtype)[:, None, None, None]
     a = torch.zeros_like(p.x_prev) if a0 is None else a0.clone()
     for _ in range(iters):
         _, g = p.loss_grad(a, fused=fused_grad)

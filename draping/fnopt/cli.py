@@ -128,8 +128,8 @@ def register_simulate(sub: argparse._SubParsersAction) -> None:
                    help="fnopt: run the FNO on the grid whose longer side has this many "
                    "vertices (0: the sheet's own grid; default 0)")
     p.add_argument("--lr", type=float, default=None,
-                   help="gd/adam step size, lbfgs step scale (default gd 2e-3, adam 0.1, "
-                   "lbfgs 1.0)")
+                   help="gd/adam step size, lbfgs step scale (default gd: per sheet the "
+                   "stable step from a curvature bound, adam 0.1, lbfgs 1.0)")
     p.add_argument("--stretch", type=float, default=300.0,
                    help="stretch stiffness, N/m (authors' range 100..1000; default 300)")
     p.add_argument("--shear", type=float, default=10.0,

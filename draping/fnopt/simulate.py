@@ -27,9 +27,11 @@ from .settings import OPTIMIZERS
 __all__ = ["SimSettings", "OPTIMIZERS", "DEFAULT_LR", "step_function", "run", "e_cd",
            "frame_metrics", "reference_rollout", "write_outputs"]
 
-#: Default step sizes (mass metric): stable hand-picked values (GD diverges above ~1e-2 on stiff
-#: sheets); ``benchmarks/bm_fnopt.py`` reports their errors.
-DEFAULT_LR = {"gd": 2e-3, "adam": 0.1, "lbfgs": 1.0}
+#: Default step sizes (mass metric); ``benchmarks/bm_fnopt.py`` reports their errors. GD:
+#: ``None``, per sheet the stable step of :func:`~draping.fnopt.preconditioners.curvature_bound`
+#: (the previous fixed 2e-3 diverged from 24x24 on, within 1-3 frames: the mass-metric curvature
+#: grows as ``1 / h^2``, its largest eigenvalue 1.6e4 at 64x64 with the default material).
+DEFAULT_LR = {"gd": None, "adam": 0.1, "lbfgs": 1.0}
 
 
 @dataclass
