@@ -46,30 +46,8 @@ sys.path.insert(0, str(HERE))
 
 from run_env import environment, finish  # noqa: E402
 
+from draping.gaps.pinch import PARTS, body_part, face_parts  # noqa: E402,F401
 from polygeo.runs import record_path  # noqa: E402
-
-#: Body parts a contact is attributed to (the dominant bone of the closest body face).
-PARTS = ("torso", "legL", "legR", "armL", "armR")
-_LEG = ("leg", "foot", "toe", "pelvis")
-_ARM = ("arm", "wrist", "finger", "metacarpal", "shoulder", "clavicle")
-
-
-def body_part(bone: str) -> str:
-    """The part of :data:`PARTS` a bone of the Anny skeleton belongs to."""
-    side = "L" if bone.endswith(".L") else "R" if bone.endswith(".R") else ""
-    if side and any(k in bone for k in _LEG):
-        return "leg" + side
-    if side and any(k in bone for k in _ARM):
-        return "arm" + side
-    return "torso"
-
-
-def face_parts(body) -> np.ndarray:
-    """``(F,)`` part name of every body face (dominant bone of its first vertex)."""
-    si, sw = body.skin_indices.numpy(), body.skin_weights.numpy()
-    vbone = si[np.arange(len(si)), sw.argmax(1)]
-    names = body.bone_names
-    return np.array([body_part(names[vbone[f[0]]]) for f in body.faces.numpy()])
 
 
 def contacts(drape, body, parts: np.ndarray, pinch: float) -> dict:

@@ -59,6 +59,7 @@ if TYPE_CHECKING:
     )
     from .losses import TERMS, body_contacts, loss_terms
     from .model import GapsModel, feature_size, pose_features, top_weights
+    from .pinch import PARTS, PinchQuery, body_part, face_parts, pinch_factor
     from .settings import (
         HELD_OUT_MOTIONS,
         INEXTENSIBILITY,
@@ -109,6 +110,11 @@ __all__ = [
     "feature_size",
     "pose_features",
     "top_weights",
+    "PARTS",
+    "PinchQuery",
+    "body_part",
+    "face_parts",
+    "pinch_factor",
     "HELD_OUT_MOTIONS",
     "INEXTENSIBILITY",
     "METHODS",

@@ -105,6 +105,10 @@ def register_train(sub: argparse._SubParsersAction) -> None:
                    help="GAPS: let the cloth within R 1-rings of a contact stretch as the "
                    "contact does (the k_ext schedule, eq. (45)); default 0: only the colliding "
                    "vertices")
+    p.add_argument("--pinch-inext", type=float, default=None, metavar="W",
+                   help="GAPS: factor in [0, 1] on L_inext at cloth pinched between an arm and "
+                   "the rest of the body (within the clearance of both) and the --k-ext-rings "
+                   "1-rings round it; 0: off there (default 1: no pinch test)")
     p.add_argument("--replay", type=float, default=None, metavar="P",
                    help="hard-example replay: probability that a step trains again on a recent "
                    "step whose collision loss was in the top decile (default 0)")
@@ -127,7 +131,7 @@ def _settings(args):
             mk[k] = getattr(args, k)
     tk = {"seed": args.seed, "init": args.init}
     for k in ("random_motions", "lr", "lr_epochs", "burn_in", "shapes", "grad_clip",
-              "collision_stiffness", "collision_eps", "k_ext_rings", "replay"):
+              "collision_stiffness", "collision_eps", "k_ext_rings", "replay", "pinch_inext"):
         if getattr(args, k) is not None:
             tk[k] = getattr(args, k)
     if args.batch is not None:

@@ -12,6 +12,7 @@ from draping import physics
 from draping.collision import MeshQuery
 
 from .data import ShapeCase
+from .pinch import PinchQuery, pinch_factor
 from .settings import GapsSettings, TrainSettings
 
 __all__ = ["TERMS", "Contacts", "body_contacts", "loss_terms"]
@@ -31,10 +32,14 @@ class Contacts:
         Outward body normal there (zero when far).
     near : (N, V) bool tensor
         Within the query radius.
+    pinched : (N, V) bool tensor or None
+        Cloth within the clearance of an arm and of the rest of the body at once
+        (:class:`draping.gaps.PinchQuery`); None when not asked for.
     """
 
-    def __init__(self, anchor: torch.Tensor, normal: torch.Tensor, near: torch.Tensor):
-        self.anchor, self.normal, self.near = anchor, normal, near
+    def __init__(self, anchor: torch.Tensor, normal: torch.Tensor, near: torch.Tensor,
+                 pinched: torch.Tensor | None = None):
+        self.anchor, self.normal, self.near, self.pinched = anchor, normal, near, pinched
 
     def distance(self, x: torch.Tensor, far: float) -> torch.Tensor:
         """Signed distance ``(N, V)`` linear in ``x``, ``far`` (m) where the body is out of reach.
@@ -46,7 +51,8 @@ class Contacts:
 
 
 def body_contacts(x: torch.Tensor, body_vertices: torch.Tensor, query: MeshQuery,
-                  radius: float) -> Contacts:
+                  radius: float, pinch: PinchQuery | None = None,
+                  eps: float = 0.0) -> Contacts:
     """Query each frame's posed body at the garment positions.
 
     Parameters
@@ -59,22 +65,30 @@ def body_contacts(x: torch.Tensor, body_vertices: torch.Tensor, query: MeshQuery
         Refitted to each frame in turn.
     radius : float
         Query radius (m).
+    pinch : PinchQuery or None
+        Also flag the cloth pinched between an arm and the rest of the body (``pinched``).
+    eps : float
+        Clearance (m) of the pinch test; > 0 with ``pinch``.
     """
     xs = x.detach().double().cpu().numpy()
     n, v, _ = xs.shape
     anchor = np.empty((n, v, 3))
     normal = np.zeros((n, v, 3))
     near = np.zeros((n, v), dtype=bool)
+    pinched = None if pinch is None else np.zeros((n, v), dtype=bool)
     for i in range(n):
-        query.update(body_vertices[i].detach())
+        bv = body_vertices[i].detach()
+        query.update(bv)
         r = query.query(xs[i], max_distance=radius)
         ok = np.isfinite(r.distance)
         near[i] = ok
         anchor[i] = np.where(ok[:, None], r.closest, xs[i])
         normal[i, ok] = r.normal[ok]
+        if pinch is not None:
+            pinched[i] = pinch.pinched(bv, xs[i], r.distance, r.face, normal[i], eps)
     t = x.dtype
     return Contacts(torch.from_numpy(anchor).to(t), torch.from_numpy(normal).to(t),
-                    torch.from_numpy(near))
+                    torch.from_numpy(near), None if pinched is None else torch.from_numpy(pinched))
 
 
 def loss_terms(x: torch.Tensor, case: ShapeCase, model: GapsSettings, train: TrainSettings,
@@ -90,7 +104,8 @@ def loss_terms(x: torch.Tensor, case: ShapeCase, model: GapsSettings, train: Tra
     model : GapsSettings
         Method (bending form, inextensibility mode).
     train : TrainSettings
-        Collision stiffness and clearance, ``k_ext`` rings, ``k_i``, query radius.
+        Collision stiffness and clearance, ``k_ext`` rings, ``k_i``, query radius,
+        ``pinch_inext`` (applied where ``contacts.pinched`` is given).
     contacts : Contacts
         Of the ``B * L`` frames, in the order of ``x.reshape(B * L, V, 3)``.
     epoch : int
@@ -128,5 +143,9 @@ def loss_terms(x: torch.Tensor, case: ShapeCase, model: GapsSettings, train: Tra
     else:
         k_ext = (physics.k_ext_schedule(d, epoch, train.collision_eps, rest, train.k_ext_rings)
                  if mode == "schedule" else 1.0)
-        out["inext"] = physics.inextensibility_energy(x, rest, k_ext, train.inext_weight)
+        w = None
+        if train.pinch_inext != 1.0 and contacts.pinched is not None:
+            w = pinch_factor(contacts.pinched.reshape(b, n_l, v), rest, train.k_ext_rings,
+                             train.pinch_inext).to(x.dtype)
+        out["inext"] = physics.inextensibility_energy(x, rest, k_ext, train.inext_weight, w)
     return out

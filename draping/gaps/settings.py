@@ -196,6 +196,11 @@ class TrainSettings:
         written, only the colliding vertices may stretch.
     inext_weight : float
         ``k_i`` of eq. (44).
+    pinch_inext : float
+        Factor in [0, 1] on L_inext (eq. (44)) at the cloth pinched between an arm and the rest
+        of the body (within ``collision_eps`` of both, their surfaces facing) and within
+        ``k_ext_rings`` 1-rings of it (:mod:`draping.gaps.pinch`); 0 lets that cloth stretch out
+        of the pinch as NCS-like's (no L_inext) does. 1: no pinch test, the old behaviour.
     query_radius : float
         Body distance queries stop at this distance (m): farther vertices cannot collide.
     seed : int
@@ -231,6 +236,7 @@ class TrainSettings:
     collision_eps: float = 2e-3
     k_ext_rings: int = 0
     inext_weight: float = 2e8
+    pinch_inext: float = 1.0
     query_radius: float = 0.02
     seed: int = 0
     checkpoint_every: int = 100
@@ -256,6 +262,10 @@ class TrainSettings:
             check_positive(getattr(self, name), name)
         for name in ("hidden_std", "collision_eps", "grad_clip"):
             check_positive(getattr(self, name), name, strict=False)
+        if not (0.0 <= check_positive(self.pinch_inext, "pinch_inext", strict=False) <= 1.0):
+            raise ValueError(f"pinch_inext: expected a factor in [0, 1], got {self.pinch_inext!r}")
+        if self.pinch_inext != 1.0 and self.collision_eps <= 0:
+            raise ValueError("pinch_inext: needs collision_eps > 0 (the pinch test's clearance)")
         if check_positive(self.replay, "replay", strict=False) >= 1.0:
             raise ValueError(f"replay: expected a probability in [0, 1), got {self.replay!r}")
         if not self.speeds or not all(math.isfinite(s) and s > 0 for s in self.speeds):
@@ -265,8 +275,8 @@ class TrainSettings:
         """The run's identity: the settings without ``steps`` and ``checkpoint_every``.
 
         A run continued for more steps is the same run; the model's part is
-        :meth:`GapsSettings.key_dict`. ``k_ext_rings`` and ``replay`` are left out when 0, so
-        the keys of runs from before they existed do not change.
+        :meth:`GapsSettings.key_dict`. ``k_ext_rings`` and ``replay`` are left out when 0 and
+        ``pinch_inext`` when 1, so the keys of runs from before they existed do not change.
         """
         d = dataclasses.asdict(self)
         for k in ("steps", "checkpoint_every"):
@@ -274,6 +284,8 @@ class TrainSettings:
         for k in ("k_ext_rings", "replay"):
             if d[k] == 0:
                 d.pop(k)
+        if d["pinch_inext"] == 1.0:
+            d.pop("pinch_inext")
         d["model"] = self.model.key_dict()
         return d
 

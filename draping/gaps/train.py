@@ -26,6 +26,7 @@ from .data import ShapeCase, random_shapes, shape_case, training_sequences
 from .infer import build_model, motion_features, save_model
 from .losses import TERMS, body_contacts, loss_terms
 from .model import GapsModel
+from .pinch import PinchQuery, face_parts
 from .settings import TrainSettings
 
 __all__ = ["TrainResult", "Trainer", "train", "STAGES"]
@@ -72,6 +73,10 @@ class Trainer:
         self._cases: dict[int, ShapeCase] = {}
         self.sequences = training_sequences(settings, self.body)
         self.query = MeshQuery(self.body.rest()[0][0].double(), self.body.faces)
+        self.pinch = None
+        if settings.pinch_inext != 1.0 and settings.model.inext_mode != "none":
+            arm = np.isin(face_parts(self.body), ("armL", "armR"))
+            self.pinch = PinchQuery(self.body.rest()[0][0].double(), self.body.faces, arm)
         self.dt = 1.0 / 30.0
         self.step = 0
         self.grad_ref = float("nan")  # running mean of clipped gradient norms (grad_clip)
@@ -201,7 +206,8 @@ class Trainer:
         rest_v = case.rest.vertices.to(disp.dtype)
         x = m.skin((rest_v + disp).reshape(b * n_l, -1, 3), posed.transforms)
         c2 = time.process_time()
-        contacts = body_contacts(x, posed.vertices, self.query, s.query_radius)
+        contacts = body_contacts(x, posed.vertices, self.query, s.query_radius, self.pinch,
+                                 s.collision_eps)
         c3 = time.process_time()
         terms = loss_terms(x.reshape(b, n_l, -1, 3), case, m.settings, s, contacts,
                            self.epoch(step), self.dt)

@@ -246,7 +246,8 @@ def repulsion_energy(
 
 
 def inextensibility_energy(
-    x: torch.Tensor, rest: RestState, k_ext: Any = 1.0, weight: float = 2e8
+    x: torch.Tensor, rest: RestState, k_ext: Any = 1.0, weight: float = 2e8,
+    vertex_weight: Any = None,
 ) -> torch.Tensor:
     """GAPS covariance inextensibility, thesis eq. (44), on the 1-rings of the template.
 
@@ -264,6 +265,9 @@ def inextensibility_energy(
         Allowed extension (>= 0): 1 inextensible, > 1 stretch (see :func:`k_ext_schedule`).
     weight : float
         ``k_i``; 2e8 as in GAPS (a loss weight, J/m^6 when ``x`` is in metres).
+    vertex_weight : (..., V) float or None
+        Optional factor on each vertex's term, >= 0 (GAPS ``pinch_inext``:
+        :func:`draping.gaps.pinch_factor`); None: 1 everywhere.
 
     Returns
     -------
@@ -273,7 +277,7 @@ def inextensibility_energy(
     Raises
     ------
     ValueError
-        Bad shapes, negative ``k_ext``.
+        Bad shapes, negative ``k_ext`` or ``vertex_weight``.
     """
     positions(x, rest.n_vertices)
     cov = covariance.vertex_covariance(x, rest.ring_index, rest.ring_mask)
@@ -284,6 +288,13 @@ def inextensibility_energy(
         weight=check_positive(weight, "weight", strict=False),
         reduction="none",
     )
+    if vertex_weight is not None:
+        w = torch.as_tensor(vertex_weight, dtype=per.dtype, device=per.device)
+        if (w.ndim < 1 or w.shape[-1] != rest.n_vertices
+                or not bool((torch.isfinite(w) & (w >= 0)).all())):
+            raise ValueError(f"vertex_weight: expected finite values >= 0 of shape (..., "
+                             f"{rest.n_vertices}), got {tuple(w.shape)}")
+        per = per * w
     return per.sum(-1)
 
 
