@@ -120,8 +120,9 @@ EQUAL_ERROR_METRIC = "e_3d"
 
 
 def _fno_options(args) -> dict:
-    """``solve_fnopt``'s FNO-grid options from ``--coarse-res`` / ``--stiffness-res``."""
-    return {"coarse_res": args.coarse_res, "stiffness_res": args.stiffness_res}
+    """``solve_fnopt``'s options from ``--coarse-res`` / ``--stiffness-res`` / ``--recycle``."""
+    return {"coarse_res": args.coarse_res, "stiffness_res": args.stiffness_res,
+            "recycle": args.recycle}
 
 
 def _step(name: str, n: int, net=None, lr=None, fno: dict | None = None, **kw):
@@ -135,7 +136,8 @@ def _step(name: str, n: int, net=None, lr=None, fno: dict | None = None, **kw):
         return _step(base, n, net, lr, fno, **{**kw, "fused_grad": False})
     if name == "fnopt":
         fno = fno or {}
-        return lambda p, a0: solve_fnopt(net, p, n, **fno)
+        memory = {}                 # the recycled basis between frames (``recycle`` > 0)
+        return lambda p, a0: solve_fnopt(net, p, n, memory=memory, **fno)
     if name == "fnopt-line":
         return lambda p, a0: solve_fnopt(net, p, n, step="line")
     if name == "pgd":
@@ -661,6 +663,9 @@ def main() -> None:
                     "run the FNO on the grid whose longer side has this many vertices (0: off)")
     ap.add_argument("--stiffness-res", type=int, default=0, help="validation / general parts: "
                     "the FNO's stiffness numbers at that grid's spacing (0: off)")
+    ap.add_argument("--recycle", type=int, default=0, help="validation / general parts: "
+                    "carry the span of each solve's last K updates to the next frame's solve "
+                    "(solve_fnopt(recycle=K); 0: off)")
     ap.add_argument("--merge", action="store_true", help="general part: replace only the rows "
                     "run now in the existing JSON (same res and frames), keep the others")
     ap.add_argument("--lbfgs-iters", default="20,50,100,150,200,300;20,50,100,150,200,300;"

@@ -127,6 +127,9 @@ def register_simulate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fno-coarse", type=int, default=0,
                    help="fnopt: run the FNO on the grid whose longer side has this many "
                    "vertices (0: the sheet's own grid; default 0)")
+    p.add_argument("--recycle", type=int, default=0,
+                   help="fnopt: carry the span of each solve's last K updates to the next "
+                   "frame's solve as extra directions (0: off; default 0)")
     p.add_argument("--lr", type=float, default=None,
                    help="gd/adam step size, lbfgs step scale (default gd: per sheet the "
                    "stable step from a curvature bound, adam 0.1, lbfgs 1.0)")
@@ -160,7 +163,8 @@ def run_simulate(args: argparse.Namespace) -> int:
                     speed=args.speed, frames=args.frames, optimizer=args.optimizer,
                     iters=args.iters, lr=args.lr,
                     material=Material(args.stretch, args.shear, args.bend),
-                    repulsion=args.repulsion, fno_coarse=args.fno_coarse)
+                    repulsion=args.repulsion, fno_coarse=args.fno_coarse,
+                    recycle=args.recycle)
     out = Path(args.out)
     bar = runs.progress(total=s.frames, desc=s.optimizer, quiet=args.quiet)
     ro = run(s, progress=lambda: bar.update(1))

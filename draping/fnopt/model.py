@@ -23,6 +23,7 @@ import torch
 from torch import nn
 
 from . import coarse
+from .cloth import positions_from_accel
 from .solvers import (
     StepProblem,
     laplace_preconditioner,
@@ -33,7 +34,8 @@ from .solvers import (
 
 __all__ = ["FNOConfig", "SpectralConv2d", "FNO", "features", "constant_features",
            "fno_correction", "fno_direction", "fno_inputs",
-           "fnopt_iteration", "subspace_update", "solve_fnopt", "STEPS",
+           "fnopt_iteration", "subspace_update", "solve_fnopt", "STEPS", "RECYCLE_MAX",
+           "check_recycle", "recycled_basis", "carried_basis",
            "N_INPUTS", "load_pretrained", "n_parameters", "stiffness_numbers", "WEIGHTS"]
 
 #: Input channels: preconditioned gradient (3), the previous one (3), previous update (3), mask (1),
@@ -308,16 +310,16 @@ def fno_correction(model: FNO, p: StepProblem, z, z_prev, da_prev, const=None,
         free, const = grid.free, grid.const
         scale = coarse.free_rms(z, free).clamp(min=1e-12)
     else:
-        free = p.free
-        scale = p.residual_rms(z).clamp(min=1e-12)
+        free = p.free3                # the mask expanded to the coordinate axis: the same
+        scale = p.residual_rms(z).clamp(min=1e-12)     # product, broadcast over the batch only
     y = model(features(p, z, z_prev, da_prev, scale, const)).permute(0, 2, 3, 1)
     y = y * scale[:, None, None, None] * free
-    return y if grid is None else coarse.prolong(y, grid) * p.free
+    return y if grid is None else coarse.prolong(y, grid) * p.free3
 
 
 def fno_direction(model: FNO, p: StepProblem, z, z_prev, da_prev) -> torch.Tensor:
     """The line-step direction ``d = -z + RMS(z) F(...)`` ``(B, H, W, 3)``, zero at handles."""
-    return fno_correction(model, p, z, z_prev, da_prev) - z * p.free
+    return fno_correction(model, p, z, z_prev, da_prev) - z * p.free3
 
 
 def fnopt_iteration(model: FNO, p: StepProblem, pre, a, z_prev, da_prev,
@@ -344,7 +346,7 @@ STEPS = ("line", "subspace")
 
 
 def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
-                    create_graph: bool = False, zn=None, const=None, grid=None):
+                    create_graph: bool = False, zn=None, const=None, grid=None, extra=None):
     """FNOpt's update: the classical PCG step's subspace plus the FNO's proposal.
 
     The span of the preconditioned steepest descent ``-z``, the previous update (PCG's memory)
@@ -365,7 +367,10 @@ def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
     out-of-plane preconditioned gradient's (:func:`draping.fnopt.solvers.normal_directions`);
     they join the classical step (then ``solve_pcg(..., normal=True)``'s). ``const``:
     :func:`constant_features` of ``p`` (a solve builds them once). ``grid``: the FNO's coarse
-    grid (:func:`fno_correction`).
+    grid (:func:`fno_correction`). ``extra`` (inference only): ``(W, HW)``, further directions
+    and their Hessian products, given (not computed here: :func:`solve_fnopt` passes a recycled
+    basis with products from the start of its solve); they join the learned step only, so
+    the classical step ``da_pcg`` is unchanged.
 
     Returns
     -------
@@ -373,6 +378,8 @@ def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
         ``(da, da_pcg, m, m_pcg)``: the update and the classical update ``(B, H, W, 3)``
         (m/s^2), and their model decreases ``(B,)`` (J, float64, <= 0).
     """
+    if create_graph and extra:
+        raise ValueError("extra: supported without create_graph only (inference)")
     f = fno_correction(model, p, z, z_prev, da_prev, const, grid=grid)
     base = [-z * p.free3, da_prev] + (list(zn) if zn is not None else [])
     if create_graph:
@@ -381,11 +388,13 @@ def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
         f = f.detach()
         hd = p.hessian_products(base + [f], hvp)
     dirs = base + [f]
+    if extra:
+        dirs, hd = dirs + list(extra[0]), hd + list(extra[1])
     k = len(base)
     (c, m), (c2, m2) = subspace_solve(g, dirs, hd, sub=k, fused=p.fused and not create_graph)
     d = torch.stack(dirs, 1)
     if not create_graph:              # both updates in one product (c2 is 0 beyond k)
-        both = torch.bmm(torch.stack([c, c2], 1).to(g.dtype), d.view(d.shape[0], k + 1, -1))
+        both = torch.bmm(torch.stack([c, c2], 1).to(g.dtype), d.view(d.shape[0], len(dirs), -1))
         return both[:, 0].view(g.shape), both[:, 1].view(g.shape), m, m2
     da = torch.einsum("bi,bihwc->bhwc", c.to(g.dtype), d)
     da_pcg = torch.einsum("bi,bihwc->bhwc", c2[:, :k].detach().to(g.dtype), d[:, :k].detach())
@@ -435,9 +444,72 @@ def fno_inputs(p: StepProblem, dtype: torch.dtype, coarse_res: int = 0,
     return const, coarse.fno_grid(p.free, shape, const, dtype)
 
 
+#: Largest recycled basis of :func:`solve_fnopt` (``recycle``).
+RECYCLE_MAX = 16
+
+#: How far (m) a problem's ``x_prev`` may lie from the state the carried basis was made for
+#: (rounding of the handles' exact placement) for it to count as that problem's next frame.
+RECYCLE_TOL = 1e-5
+
+
+def check_recycle(recycle) -> None:
+    """Check ``solve_fnopt``'s ``recycle``: an int in ``[0, RECYCLE_MAX]``.
+
+    Raises
+    ------
+    TypeError
+        If ``recycle`` is not an int (``bool`` included).
+    ValueError
+        If it is out of range.
+    """
+    if isinstance(recycle, bool) or not isinstance(recycle, int):
+        raise TypeError(f"recycle: expected an int, got {type(recycle).__name__}")
+    if not 0 <= recycle <= RECYCLE_MAX:
+        raise ValueError(f"recycle: expected an int in [0, {RECYCLE_MAX}], got {recycle}")
+
+
+def recycled_basis(updates: list, free3: torch.Tensor) -> list:
+    """An orthonormal basis of the span of ``updates`` (each ``(B, H, W, 3)``), zero at handles.
+
+    Euclidean per sheet, in float64, returned in the updates' dtype: the Gram matrix's
+    eigenvectors whose eigenvalues are above 1e-12 of the largest on every sheet (a repeated or
+    zero update adds none), then a QR of those combinations (orthonormal to rounding). ``free3``:
+    the free mask ``(B or 1, H, W, 3)``. Empty ``updates``: ``[]``.
+    """
+    if not updates:
+        return []
+    shape = updates[0].shape
+    u = torch.stack([d * free3 for d in updates], -1).reshape(shape[0], -1, len(updates))
+    u = u.double()
+    lam, vec = torch.linalg.eigh(u.transpose(1, 2) @ u)
+    keep = (lam > 1e-12 * lam[:, -1:].clamp(min=1e-300)).all(0)
+    if not bool(keep.any()):
+        return []
+    q = torch.linalg.qr(u @ (vec[:, :, keep] / lam[:, None, keep].sqrt()))[0]
+    q = q.to(updates[0].dtype).reshape(*shape, -1) * free3[..., None]
+    return [q[..., i] for i in range(q.shape[-1])]
+
+
+def carried_basis(p: StepProblem, memory: dict) -> list:
+    """The recycled basis ``memory`` carries to ``p``, or ``[]``.
+
+    ``memory["basis"]`` (from :func:`solve_fnopt`) is used only if ``p`` continues the step it
+    was made on: ``p.x_prev`` within :data:`RECYCLE_TOL` (m, max over vertices) of
+    ``memory["x_next"]``, the positions that step's solution leads to. A new rollout, another
+    sheet or a repeated frame starts without one.
+    """
+    basis, x_next = memory.get("basis"), memory.get("x_next")
+    if not basis or x_next is None or x_next.shape != p.x_prev.shape:
+        return []
+    if float((p.x_prev - x_next.to(p.x_prev.dtype)).abs().max()) > RECYCLE_TOL:
+        return []
+    return [w.to(p.x_prev.dtype) for w in basis]
+
+
 def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "subspace",
                 guard: bool = True, info: dict | None = None, coarse_res: int = 0,
-                stiffness_res: int = 0) -> torch.Tensor:
+                stiffness_res: int = 0, recycle: int = 0,
+                memory: dict | None = None) -> torch.Tensor:
     """Algorithm 2: ``iters`` learned updates from ``a = 0``; returns the accelerations.
 
     ``step``: ``"subspace"`` (default, :func:`subspace_update`) or ``"line"`` (the exact
@@ -451,17 +523,34 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
     spacing (:func:`fno_inputs`); the subspace step and its classical directions stay on
     ``p``'s grid.
 
+    ``recycle`` (subspace step; 0, the default: off) with ``memory`` (a dict kept by the caller
+    across the frames of a rollout): the soft modes a step leaves undone are nearly those of the
+    next step, so the span of this solve's last ``recycle`` updates is kept
+    (:func:`recycled_basis`, stored in ``memory`` with the positions the solution leads to) and
+    the next frame's solve (:func:`carried_basis`) adds it to every iteration's learned step
+    (:func:`subspace_update`'s ``extra``), with the basis' Hessian products taken once, at
+    ``a = 0``: the quadratic model picks their coefficients, the classical step and the guard
+    are unchanged (the learned update, basis included, is kept only if it lowers ``L_cloth``
+    at least as much as the classical step's model predicts).
+
     Raises
     ------
     ValueError
         On an unknown ``step``, bad ``coarse_res`` / ``stiffness_res`` (:func:`fno_inputs`), or
-        either of them set with ``step="line"``.
+        either of them set with ``step="line"``; ``recycle`` out of range
+        (:func:`check_recycle`), set with ``step="line"`` or without ``memory``.
+    TypeError
+        If ``recycle`` is not an int.
     """
     if step not in STEPS:
         raise ValueError(f"step: expected one of {list(STEPS)}, got {step!r}")
     if step == "line" and (coarse_res or stiffness_res):
         raise ValueError("coarse_res / stiffness_res: supported by step='subspace' only, got "
                          f"{coarse_res} / {stiffness_res} with step='line'")
+    check_recycle(recycle)
+    if recycle and (step == "line" or memory is None):
+        raise ValueError(f"recycle: {recycle} needs step='subspace' (got {step!r}) and a "
+                         f"memory dict (got {type(memory).__name__})")
     pre = laplace_preconditioner(p)
     pn = normal_preconditioner(p) if model.config.normal and step == "subspace" else None
     a = torch.zeros_like(p.x_prev) if a0 is None else (a0 * p.free).clone()
@@ -476,13 +565,16 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
     slack = 1e-6 if a.dtype != torch.float64 else 1e-12
     replaced = 0
     val, g, hvp = p.grad_hvp(a)
+    w = carried_basis(p, memory) if recycle else []
+    extra = (w, p.hessian_products(w, hvp)) if w else None
+    updates = []
     for k in range(iters):
         more = k < iters - 1              # a next iteration needs the gradient at a + dn
         z = pre(g) * p.free3
         zn = normal_directions(p, g, pn, model.config.normal_split) if pn is not None else None
         with torch.no_grad():
             dn, dn_pcg, _, m_pcg = subspace_update(model, p, g, hvp, z, z_prev, da, zn=zn,
-                                                   const=const, grid=grid)
+                                                   const=const, grid=grid, extra=extra)
         nxt = _evaluate(p, a + dn, more) if (more or guard) else None
         if guard:
             bad = (nxt[0] - val).double() > m_pcg + slack * val.abs().double()
@@ -491,11 +583,17 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
                 dn = torch.where(bad[:, None, None, None], dn_pcg, dn)
                 nxt = _evaluate(p, a + dn, True) if more else nxt
         a, da, z_prev = a + dn, dn, z
+        if recycle:
+            updates = (updates + [dn])[-recycle:]
         if more:
             val, g, hvp = nxt
     if info is not None:
         info["replaced"] = replaced
-    return p.compose(a)
+    out = p.compose(a)
+    if recycle:
+        memory["basis"] = recycled_basis(updates, p.free3)
+        memory["x_next"] = positions_from_accel(out, p.x_prev, p.v_prev, p.dt).detach()
+    return out
 
 
 def n_parameters(model: nn.Module) -> int:

@@ -40,6 +40,8 @@ class SimSettings:
 
     ``fno_coarse`` (FNOpt only; 0, the default: off): run the FNO on the grid whose longer side
     has this many vertices (``solve_fnopt(coarse_res=...)``, :mod:`draping.fnopt.coarse`).
+    ``recycle`` (FNOpt only; 0, the default: off): carry the span of each solve's last
+    ``recycle`` updates to the next frame's solve (``solve_fnopt(recycle=...)``).
     """
 
     res: tuple = (64, 64)
@@ -55,6 +57,7 @@ class SimSettings:
     repulsion: float = 0.0
     orientation: str = "vertical"
     fno_coarse: int = 0
+    recycle: int = 0
 
     def __post_init__(self) -> None:
         if self.optimizer not in OPTIMIZERS:
@@ -69,6 +72,9 @@ class SimSettings:
             raise ValueError(f"frames: expected an int >= 1, got {self.frames!r}")
         self.res = tuple(int(r) for r in self.res)
         check_grid_option(self.fno_coarse, "fno_coarse")
+        from .model import check_recycle
+
+        check_recycle(self.recycle)
 
     def sheet(self) -> cloth.Sheet:
         """The grid sheet."""
@@ -77,7 +83,7 @@ class SimSettings:
     def key(self) -> dict:
         """What the reference rollout depends on."""
         d = asdict(self)
-        for k in ("optimizer", "iters", "lr", "fno_coarse"):
+        for k in ("optimizer", "iters", "lr", "fno_coarse", "recycle"):
             d.pop(k)
         return d
 
@@ -97,8 +103,8 @@ def step_function(settings: SimSettings, model=None):
         from .model import load_pretrained, solve_fnopt
 
         net = model if model is not None else load_pretrained()
-        k = settings.fno_coarse
-        return lambda p, a0: solve_fnopt(net, p, n, coarse_res=k)
+        k, r, memory = settings.fno_coarse, settings.recycle, {}
+        return lambda p, a0: solve_fnopt(net, p, n, coarse_res=k, recycle=r, memory=memory)
     lr = settings.lr if settings.lr is not None else DEFAULT_LR[name]
     if name == "lbfgs":
         return lambda p, a0: CLASSICAL[name](p, n, step=lr, fused_grad=True)

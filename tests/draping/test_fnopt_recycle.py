@@ -1,0 +1,173 @@
+"""FNOpt's recycled subspace (``solve_fnopt(recycle=k, memory=...)``) across frames."""
+
+from dataclasses import fields
+
+import pytest
+import torch
+
+from draping.fnopt import cloth, model, solvers
+from draping.fnopt.cloth import Material, Sheet
+from draping.fnopt.simulate import SimSettings, run
+
+torch.set_num_threads(1)
+
+
+class _Springs(solvers.StepProblem):
+    """``L(a) = 1/2 m dt^2 |a|^2 + 1/2 k sum |grid differences of a|^2 - b . a`` (float64)."""
+
+    def loss(self, a: torch.Tensor) -> torch.Tensor:
+        a = self.compose(a)
+        du, dv = a[:, 1:] - a[:, :-1], a[:, :, 1:] - a[:, :, :-1]
+        m = self.mass[..., None] * self.dt * self.dt
+        return 0.5 * (m * a * a).sum((1, 2, 3)) + 0.5 * self.k * (
+            du.square().sum((1, 2, 3)) + dv.square().sum((1, 2, 3))) - (self.b * a).sum((1, 2, 3))
+
+
+def _springs(res=(8, 7)):
+    sheet = Sheet(*res)
+    x = cloth.rest_positions(sheet, dtype=torch.float64)[None]
+    idx = cloth.handle_indices("corner-centre", *res)
+    p = solvers.make_problem(x, torch.zeros_like(x), idx, x[:, idx[:, 0], idx[:, 1]],
+                             sheet.hx, sheet.hy, Material().tensors(1, torch.float64))
+    q = _Springs(**{f.name: getattr(p, f.name) for f in fields(p)})
+    q.k = float(p.mass.mean()) * p.dt ** 2 * 300.0
+    q.b = torch.randn(x.shape, generator=torch.Generator().manual_seed(0),
+                      dtype=torch.float64) * float(p.mass.mean()) * p.dt ** 2
+    return q
+
+
+def _dense_minimiser(p):
+    """The exact minimiser from the dense Hessian of ``p.loss`` over the free entries."""
+    a0 = torch.zeros_like(p.x_prev)
+    free = p.free3.expand(a0.shape).reshape(-1) > 0.5
+    f = lambda v: p.loss(v.view(a0.shape))[0]                               # noqa: E731
+    h = torch.autograd.functional.hessian(f, a0.reshape(-1))[free][:, free]
+    g = torch.autograd.functional.jacobian(f, a0.reshape(-1))[free]
+    a = torch.zeros(a0.numel(), dtype=torch.float64)
+    a[free] = torch.linalg.solve(h, -g)
+    return a.view(a0.shape)
+
+
+def _net(seed=0, gain=1.0, dtype=torch.float64):
+    torch.manual_seed(seed)
+    net = model.FNO(model.FNOConfig(width=8, modes=4, layers=2, projection=8)).to(dtype)
+    with torch.no_grad():
+        net.proj2.weight.mul_(gain)
+    return net
+
+
+def _rel(a, b, p):
+    return float(((a - b) * p.free3).norm() / (b * p.free3).norm())
+
+
+def test_a_basis_holding_the_minimiser_solves_a_quadratic_in_one_iteration():
+    p = _springs()
+    want = _dense_minimiser(p)
+    net = _net(1)
+    assert _rel(model.solve_fnopt(net, p, 1), want, p) > 0.1            # not by itself
+    memory = {"basis": [want / want.norm()], "x_next": p.x_prev.clone()}
+    got = model.solve_fnopt(net, p, 1, recycle=1, memory=memory)
+    assert _rel(got, want, p) < 1e-8
+
+
+def test_recycle_zero_is_the_default_solve_bit_for_bit():
+    net = _net(0, dtype=torch.float32)
+    memory = {}
+
+    def step(**kw):
+        return lambda p, a0: model.solve_fnopt(net, p, 5, **kw)
+
+    ros = [solvers.rollout(Sheet(10, 12), Material(), "diagonal", "xyz", 6, s, speed=2.0)
+           for s in (step(), step(recycle=0, memory=memory))]
+    assert torch.equal(ros[0].positions, ros[1].positions)
+    assert memory == {}
+
+
+def test_the_basis_is_orthonormal_free_at_handles_and_spans_the_updates():
+    g = torch.Generator().manual_seed(3)
+    free = torch.ones(2, 6, 5, 1, dtype=torch.float64)
+    free[:, 0, 0] = free[:, 3, 2] = 0.0
+    free3 = free.expand(2, 6, 5, 3)
+    ups = [torch.randn(2, 6, 5, 3, generator=g, dtype=torch.float64) * free3 for _ in range(3)]
+    ups.append(2.0 * ups[1] - ups[0])                                    # dependent: dropped
+    w = model.recycled_basis(ups, free3)
+    assert len(w) == 3
+    q = torch.stack(w, -1).reshape(2, -1, 3)
+    assert torch.allclose(q.transpose(1, 2) @ q, torch.eye(3, dtype=torch.float64).expand(2, 3, 3),
+                          atol=1e-12)
+    assert all(float((wi * (1 - free3)).abs().max()) == 0.0 for wi in w)
+    for u in ups:                                             # each update lies in the span
+        uf = u.reshape(2, -1, 1)
+        assert float((uf - q @ (q.transpose(1, 2) @ uf)).norm()) < 1e-10 * float(uf.norm())
+    assert model.recycled_basis([], free3) == []
+
+
+def test_the_basis_is_carried_only_to_the_frame_that_follows():
+    net = _net(0, dtype=torch.float32)
+    memory, seen = {}, []
+
+    def step(p, a0):
+        seen.append((p, len(model.carried_basis(p, memory))))
+        return model.solve_fnopt(net, p, 4, recycle=3, memory=memory)
+
+    solvers.rollout(Sheet(10, 12), Material(), "diagonal", "xyz", 4, step, speed=2.0)
+    assert [n for _, n in seen] == [0, 3, 3, 3]                # none at the first frame
+    assert len(memory["basis"]) == 3
+    # another rollout (or a repeated frame) does not continue the last solve: no basis
+    assert model.carried_basis(seen[0][0], memory) == []
+    assert model.carried_basis(seen[2][0], memory) == []
+
+
+def test_recycling_never_lets_a_step_raise_the_energy_past_the_guard():
+    # wild proposals and a random basis on a nonlinear cloth step: the energy after n
+    # iterations does not rise with n (the guard keeps the classical step's decrease)
+    sheet = Sheet(12, 12)
+    ro = solvers.rollout(sheet, Material(), "diagonal", "xyz", 6,
+                         lambda p, a0: solvers.solve_pcg(p, 10), speed=2.0, dtype=torch.float64)
+    idx = cloth.handle_indices("diagonal", 12, 12)
+    x = ro.positions[-2][None]
+    v = (ro.positions[-2] - ro.positions[-3])[None] / solvers.DT
+    p = solvers.make_problem(x, v, idx, ro.positions[-1][None][:, idx[:, 0], idx[:, 1]],
+                             sheet.hx, sheet.hy, Material().tensors(1, torch.float64))
+    gen = torch.Generator().manual_seed(5)
+    rand = [torch.randn(x.shape, generator=gen, dtype=torch.float64) * 50.0 for _ in range(4)]
+    basis = model.recycled_basis(rand, p.free3)
+    net = _net(1, gain=3000.0)
+    losses = [float(p.loss(torch.zeros_like(x))[0])]
+    for n in range(1, 9):
+        memory = {"basis": list(basis), "x_next": p.x_prev.clone()}
+        losses.append(float(p.loss(model.solve_fnopt(net, p, n, recycle=4, memory=memory))[0]))
+    assert all(b <= a + 1e-12 * abs(a) for a, b in zip(losses, losses[1:]))
+    assert losses[-1] < losses[0]
+
+
+@pytest.mark.parametrize("bad, err", [(-1, ValueError), (model.RECYCLE_MAX + 1, ValueError),
+                                      (2.0, TypeError), (True, TypeError)])
+def test_bad_recycle_raises(bad, err):
+    p = _springs()
+    with pytest.raises(err, match="recycle"):
+        model.solve_fnopt(_net(), p, 2, recycle=bad, memory={})
+    with pytest.raises(err, match="recycle"):
+        SimSettings(recycle=bad)
+
+
+def test_recycle_needs_memory_and_the_subspace_step():
+    p = _springs()
+    with pytest.raises(ValueError, match="memory"):
+        model.solve_fnopt(_net(), p, 2, recycle=2)
+    with pytest.raises(ValueError, match="subspace"):
+        model.solve_fnopt(_net(), p, 2, recycle=2, memory={}, step="line")
+
+
+def test_simulate_carries_the_basis_across_frames():
+    net = _net(0, dtype=torch.float32)
+    s = SimSettings(res=(10, 10), handles="diagonal", motion="xyz", frames=5, recycle=2)
+    got = run(s, model=net)
+    memory = {}
+    want = solvers.rollout(s.sheet(), s.material, s.handles, s.motion, s.frames,
+                           lambda p, a0: model.solve_fnopt(net, p, s.iters, recycle=2,
+                                                           memory=memory), s.speed)
+    plain = run(SimSettings(res=(10, 10), handles="diagonal", motion="xyz", frames=5), model=net)
+    assert torch.equal(got.positions, want.positions)
+    assert not torch.equal(got.positions, plain.positions)
+    assert "recycle" not in s.key()
