@@ -101,8 +101,8 @@ def test_coarse_proposal_is_the_coarse_fno_prolonged_and_zero_at_handles():
     assert float(f.abs().max()) > 0.0
     # the stiffness channels are the coarse spacing's: those of the same sheet at 32 x 32
     p32 = _problem(32, 32, "corner-centre")
-    assert torch.allclose(const[0, 1:4, 0, 0], model.constant_features(p32, torch.float32)[0, 1:4, 0, 0],
-                          atol=1e-5)
+    want = model.constant_features(p32, torch.float32)[0, 1:4, 0, 0]
+    assert torch.allclose(const[0, 1:4, 0, 0], want, atol=1e-5)
 
 
 def test_coarse_solve_keeps_handles_and_lowers_the_loss():
@@ -114,7 +114,8 @@ def test_coarse_solve_keeps_handles_and_lowers_the_loss():
         assert torch.equal(a[:, idx[:, 0], idx[:, 1]], p.a_fixed[:, idx[:, 0], idx[:, 1]])
         assert float(p.loss(a * p.free)) < float(p.loss(torch.zeros_like(a)))
     # the coarse run differs from the fine one (the option does something)
-    assert not torch.equal(model.solve_fnopt(net, p, 5, coarse_res=24), model.solve_fnopt(net, p, 5))
+    on_coarse = model.solve_fnopt(net, p, 5, coarse_res=24)
+    assert not torch.equal(on_coarse, model.solve_fnopt(net, p, 5))
 
 
 @pytest.mark.parametrize("kw,err", [({"coarse_res": 1}, ValueError),

@@ -12,6 +12,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from fnopt_cases import random_problem
 from torch import nn
 
 from draping.fnopt import cloth, model, preconditioners, solvers
@@ -108,16 +109,7 @@ def test_spectral_accumulation_adds_in_place():
 
 
 def _problem(n=9, dtype=F64, seed=0):
-    gen = torch.Generator().manual_seed(seed)
-    sheet = Sheet(n, n + 2)
-    x = cloth.rest_positions(sheet, "vertical", F64)[None]
-    x = x + 1e-3 * torch.randn(x.shape, generator=gen, dtype=F64)
-    v = 0.1 * torch.randn(x.shape, generator=gen, dtype=F64)
-    idx = cloth.handle_indices("corners", n, n + 2)
-    tgt = x[:, idx[:, 0], idx[:, 1]] + 1e-3
-    mat = Material(damping=0.3).tensors(1, F64)
-    return solvers.make_problem(x.to(dtype), v.to(dtype), idx, tgt.to(dtype), sheet.hx,
-                                sheet.hy, {k: v.to(dtype) for k, v in mat.items()})
+    return random_problem(n, dtype, seed, layout="corners")
 
 
 def test_kernel_constants_are_built_once_and_follow_material_changes():

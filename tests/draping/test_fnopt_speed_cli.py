@@ -11,11 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from fnopt_cases import random_problem
 
-from draping.fnopt import classical, cloth
-from draping.fnopt.cloth import Material, Sheet
+from draping.fnopt import classical
 from draping.fnopt.simulate import SimSettings, step_function
-from draping.fnopt.step_problem import make_problem
 
 ROOT = Path(__file__).resolve().parents[2]
 F64 = torch.float64
@@ -32,16 +31,7 @@ def bm():
 
 
 def _problem(n=9, dtype=torch.float32, seed=0):
-    gen = torch.Generator().manual_seed(seed)
-    sheet = Sheet(n, n + 2)
-    x = cloth.rest_positions(sheet, "vertical", F64)[None]
-    x = x + 1e-3 * torch.randn(x.shape, generator=gen, dtype=F64)
-    v = 0.1 * torch.randn(x.shape, generator=gen, dtype=F64)
-    idx = cloth.handle_indices("diagonal", n, n + 2)
-    tgt = x[:, idx[:, 0], idx[:, 1]] + 1e-3
-    mat = Material(damping=0.3).tensors(1, F64)
-    return make_problem(x.to(dtype), v.to(dtype), idx, tgt.to(dtype), sheet.hx, sheet.hy,
-                        {k: t.to(dtype) for k, t in mat.items()})
+    return random_problem(n, dtype, seed, layout="diagonal")
 
 
 def test_simulate_cli_lbfgs_rollout_equals_the_benchmarks(bm, tmp_path):
