@@ -95,24 +95,63 @@ def test_parsimony_pick_takes_the_smallest_model_within_ten_percent():
         sw.parsimony_pick([{"parameters": 1, "val_subopt": None}])
 
 
-def test_validation_cases_are_never_benchmark_cases(bm):
+def _case_keys(bm, cases):
+    """Hashable ``(layout, motion, speed)``: named random layouts resolved to their pins."""
     def key(lay):
         lay = bm.RANDOM_LAYOUTS.get(lay, lay) if isinstance(lay, str) else lay
         return lay if isinstance(lay, str) else tuple(tuple(p) for p in lay)
 
-    bench = {(key(lay), mo, sp) for mo in ("xy", "xyz", "z") for lay, mo, sp in
-             bm.general_cases(mo)}
-    val = [(key(lay), mo, sp) for lay, mo, sp in bm.VALIDATION_CASES]
+    return [(key(lay), mo, sp) for lay, mo, sp in cases]
+
+
+def _bench_keys(bm):
+    return {c for mo in ("xy", "xyz", "z") for c in _case_keys(bm, bm.general_cases(mo))}
+
+
+def _bench_pin_sets(bm):
+    return {k for k, _, _ in _case_keys(bm, [(v, "", 0) for v in bm.RANDOM_LAYOUTS.values()])}
+
+
+def test_validation_cases_are_never_benchmark_cases(bm):
+    bench = _bench_keys(bm)
+    val = _case_keys(bm, bm.VALIDATION_CASES)
     assert len(set(val)) == len(val) == 8
     assert not set(val) & bench
     # the random pin sets are new sets, inside the sheet
     pins = [k for k, _, _ in val if not isinstance(k, str)]
     assert len(pins) == 3
-    assert not set(pins) & {key(v) for v in bm.RANDOM_LAYOUTS.values()}
+    assert not set(pins) & _bench_pin_sets(bm)
     assert all(0.0 <= c <= 1.0 for k in pins for p in k for c in p)
     # the general part's own list is unchanged by the refactor: 13 cases, its random sets named
     cases = bm.general_cases("xy")
     assert len(cases) == 13 and [c[0] for c in cases[-3:]] == list(bm.RANDOM_LAYOUTS)
+
+
+def test_screened_validation_cases_are_kept_apart(bm):
+    """The screened set: five validation cases (not the three with floors 34-48), three new."""
+    scr = _case_keys(bm, bm.SCREENED_VALIDATION_CASES)
+    val = _case_keys(bm, bm.VALIDATION_CASES)
+    assert len(set(scr)) == len(scr) == 8
+    assert not set(scr) & _bench_keys(bm)
+    assert scr[:5] == [val[i] for i in (2, 3, 4, 5, 7)]
+    assert not set(scr[5:]) & set(val)
+    assert not {val[0], val[1], val[6]} & set(scr)
+    new_pins = [k for k, _, _ in scr[5:]]
+    assert [len(k) for k in new_pins] == [3, 4, 5]
+    assert not set(new_pins) & _bench_pin_sets(bm)
+    assert all(0.0 <= c <= 1.0 for k in new_pins for p in k for c in p)
+
+
+def test_screen_case_keeps_a_stable_case_and_its_threshold_bites(bm, tmp_path, monkeypatch):
+    from draping.fnopt.simulate import SimSettings
+
+    monkeypatch.setattr(bm, "REFS", tmp_path)
+    s = SimSettings(res=(8, 8), handles="corners", motion="xy", frames=3)
+    kept = bm.screen_case(s, every=1)
+    assert kept["kept"] and kept["r1_e_cd"] <= 1.0 and kept["r2_e_cd"] <= 1.0
+    # e_CD's sampling floor is above 0: a zero threshold drops the case at R1, R2 not run
+    dropped = bm.screen_case(s, threshold=0.0, every=1)
+    assert not dropped["kept"] and dropped["r1_e_cd"] > 0.0 and "r2_e_cd" not in dropped
 
 
 def test_sweep_rows_rebuild_the_step_rule_they_were_trained_with(tmp_path):
