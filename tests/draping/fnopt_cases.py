@@ -6,6 +6,8 @@ Imported as ``from fnopt_cases import random_problem``: pytest puts this folder 
 
 from __future__ import annotations
 
+from dataclasses import fields
+
 import torch
 
 from draping.fnopt import cloth
@@ -33,3 +35,47 @@ def random_problem(n: int = 9, dtype: torch.dtype = F64, seed: int = 0,
     mat = Material(damping=0.3).tensors(1, F64)
     return make_problem(x.to(dtype), v.to(dtype), idx, tgt.to(dtype), sheet.hx, sheet.hy,
                         {k: t.to(dtype) for k, t in mat.items()})
+
+
+class QuadraticProblem(StepProblem):
+    """``L(a) = 1/2 a^T A a - b^T a`` on the free vertices of a step problem (float64).
+
+    ``A``: the inertia ``m dt^2`` plus grid-edge springs ``k`` that couple the three coordinates
+    through a 3x3 SPD matrix ``coupling`` (the identity: isotropic springs); ``b``: a load.
+    Set by :func:`quadratic_problem`.
+    """
+
+    def loss(self, a: torch.Tensor) -> torch.Tensor:
+        a = self.compose(a)
+        m = self.mass[..., None] * self.dt * self.dt
+        du = a[:, 1:] - a[:, :-1]
+        dv = a[:, :, 1:] - a[:, :, :-1]
+        springs = ((du @ self.coupling) * du).sum((1, 2, 3)) + \
+            ((dv @ self.coupling) * dv).sum((1, 2, 3))
+        return 0.5 * (m * a * a).sum((1, 2, 3)) + 0.5 * self.k * springs - \
+            (self.b * a).sum((1, 2, 3))
+
+
+def quadratic_problem(res=(12, 10), stiffness: float = 400.0, load: float = 10.0, seed: int = 0,
+                      anisotropic: bool = True) -> QuadraticProblem:
+    """A :class:`QuadraticProblem` on an ``H x W`` rest sheet with corner-centre handles.
+
+    ``k = stiffness m dt^2``, ``b`` Gaussian times ``load m dt^2`` (``m`` the mean vertex mass);
+    ``anisotropic``: the coupling is ``R diag(1, 0.02, 6) R^T`` with a random rotation ``R``
+    (drawn from ``seed`` before ``b``), so the isotropic DCT preconditioner is not exact;
+    otherwise the identity.
+    """
+    sheet = Sheet(*res)
+    x = cloth.rest_positions(sheet, dtype=F64)[None]
+    idx = cloth.handle_indices("corner-centre", *res)
+    p = make_problem(x, torch.zeros_like(x), idx, x[:, idx[:, 0], idx[:, 1]], sheet.hx,
+                     sheet.hy, Material().tensors(1, F64))
+    q = QuadraticProblem(**{f.name: getattr(p, f.name) for f in fields(p)})
+    g = torch.Generator().manual_seed(seed)
+    q.coupling = torch.eye(3, dtype=F64)
+    if anisotropic:
+        rot = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=F64))[0]
+        q.coupling = rot @ torch.diag(torch.tensor([1.0, 0.02, 6.0], dtype=F64)) @ rot.T
+    q.k = float(p.mass.mean()) * p.dt ** 2 * stiffness
+    q.b = torch.randn(x.shape, generator=g, dtype=F64) * float(p.mass.mean()) * p.dt ** 2 * load
+    return q

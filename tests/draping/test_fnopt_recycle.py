@@ -1,9 +1,9 @@
 """FNOpt's recycled subspace (``solve_fnopt(recycle=k, memory=...)``) across frames."""
 
-from dataclasses import fields
 
 import pytest
 import torch
+from fnopt_cases import quadratic_problem
 
 from draping.fnopt import cloth, model, solvers
 from draping.fnopt.cloth import Material, Sheet
@@ -12,28 +12,9 @@ from draping.fnopt.simulate import SimSettings, run
 torch.set_num_threads(1)
 
 
-class _Springs(solvers.StepProblem):
-    """``L(a) = 1/2 m dt^2 |a|^2 + 1/2 k sum |grid differences of a|^2 - b . a`` (float64)."""
-
-    def loss(self, a: torch.Tensor) -> torch.Tensor:
-        a = self.compose(a)
-        du, dv = a[:, 1:] - a[:, :-1], a[:, :, 1:] - a[:, :, :-1]
-        m = self.mass[..., None] * self.dt * self.dt
-        return 0.5 * (m * a * a).sum((1, 2, 3)) + 0.5 * self.k * (
-            du.square().sum((1, 2, 3)) + dv.square().sum((1, 2, 3))) - (self.b * a).sum((1, 2, 3))
-
-
 def _springs(res=(8, 7)):
-    sheet = Sheet(*res)
-    x = cloth.rest_positions(sheet, dtype=torch.float64)[None]
-    idx = cloth.handle_indices("corner-centre", *res)
-    p = solvers.make_problem(x, torch.zeros_like(x), idx, x[:, idx[:, 0], idx[:, 1]],
-                             sheet.hx, sheet.hy, Material().tensors(1, torch.float64))
-    q = _Springs(**{f.name: getattr(p, f.name) for f in fields(p)})
-    q.k = float(p.mass.mean()) * p.dt ** 2 * 300.0
-    q.b = torch.randn(x.shape, generator=torch.Generator().manual_seed(0),
-                      dtype=torch.float64) * float(p.mass.mean()) * p.dt ** 2
-    return q
+    """Isotropic grid springs: ``L(a) = 1/2 m dt^2 |a|^2 + 1/2 k |grid differences|^2 - b . a``."""
+    return quadratic_problem(res, 300.0, 1.0, 0, anisotropic=False)
 
 
 def _dense_minimiser(p):

@@ -1,9 +1,8 @@
 """FNOpt's subspace step against the classical PCG step it is built on; training through it."""
 
-from dataclasses import fields
-
 import pytest
 import torch
+from fnopt_cases import quadratic_problem
 
 from draping.fnopt import cloth, model, solvers
 from draping.fnopt.cloth import Material, Sheet
@@ -11,39 +10,8 @@ from draping.fnopt.cloth import Material, Sheet
 torch.set_num_threads(1)
 
 
-class _Quadratic(solvers.StepProblem):
-    """``L(a) = 1/2 a^T A a - b^T a`` on the free vertices of a step problem (float64).
-
-    ``A``: the inertia ``m dt^2`` plus grid-edge springs that couple the three coordinates
-    anisotropically (a 3x3 SPD matrix ``C``), so the isotropic DCT preconditioner is not exact
-    and PCG needs its iterations; ``b`` random.
-    """
-
-    def loss(self, a: torch.Tensor) -> torch.Tensor:
-        a = self.compose(a)
-        m = self.mass[..., None] * self.dt * self.dt
-        du = a[:, 1:] - a[:, :-1]
-        dv = a[:, :, 1:] - a[:, :, :-1]
-        springs = ((du @ self.coupling) * du).sum((1, 2, 3)) + \
-            ((dv @ self.coupling) * dv).sum((1, 2, 3))
-        return 0.5 * (m * a * a).sum((1, 2, 3)) + 0.5 * self.k * springs - \
-            (self.b * a).sum((1, 2, 3))
-
-
 def _quadratic(seed=0, res=(12, 10)):
-    sheet = Sheet(*res)
-    x = cloth.rest_positions(sheet, dtype=torch.float64)[None]
-    idx = cloth.handle_indices("corner-centre", *res)
-    p = solvers.make_problem(x, torch.zeros_like(x), idx, x[:, idx[:, 0], idx[:, 1]],
-                             sheet.hx, sheet.hy, Material().tensors(1, torch.float64))
-    q = _Quadratic(**{f.name: getattr(p, f.name) for f in fields(p)})
-    g = torch.Generator().manual_seed(seed)
-    rot = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))[0]
-    q.coupling = rot @ torch.diag(torch.tensor([1.0, 0.02, 6.0], dtype=torch.float64)) @ rot.T
-    q.k = float(p.mass.mean()) * p.dt ** 2 * 400.0
-    q.b = torch.randn(x.shape, generator=g, dtype=torch.float64) * float(p.mass.mean()) * \
-        p.dt ** 2 * 10.0
-    return q
+    return quadratic_problem(res, 400.0, 10.0, seed)
 
 
 def _net(seed=0, gain=1.0):
