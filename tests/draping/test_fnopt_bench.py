@@ -128,18 +128,40 @@ def test_validation_cases_are_never_benchmark_cases(bm):
 
 
 def test_screened_validation_cases_are_kept_apart(bm):
-    """The screened set: five validation cases (not the three with floors 34-48), three new."""
+    """The screened set: five validation cases (not the three with floors 34-48), eight new."""
     scr = _case_keys(bm, bm.SCREENED_VALIDATION_CASES)
     val = _case_keys(bm, bm.VALIDATION_CASES)
-    assert len(set(scr)) == len(scr) == 8
+    assert len(set(scr)) == len(scr) == 13
     assert not set(scr) & _bench_keys(bm)
     assert scr[:5] == [val[i] for i in (2, 3, 4, 5, 7)]
     assert not set(scr[5:]) & set(val)
     assert not {val[0], val[1], val[6]} & set(scr)
     new_pins = [k for k, _, _ in scr[5:]]
-    assert [len(k) for k in new_pins] == [3, 4, 5]
+    assert [len(k) for k in new_pins] == [3, 4, 5, 2, 5, 3, 4, 2]
     assert not set(new_pins) & _bench_pin_sets(bm)
     assert all(0.0 <= c <= 1.0 for k in new_pins for p in k for c in p)
+
+
+def test_screened_fresh_cases_are_the_passing_draws_in_order(bm):
+    """The fresh cases are draws k = 1..13 of the session-13 generator, all that passed, in order.
+
+    Motion and speed per k from ``default_rng(1300)`` (motion among MOTIONS without "still",
+    speed among 1.0-1.5), pins ``_pins(1300 + k, 2 + k % 4)``; draws 5, 6, 8, 11, 13 failed the
+    screen. A case list edited by hand (or chosen by a solver's error) fails here.
+    """
+    import numpy as np
+
+    from draping.fnopt.settings import MOTIONS
+
+    rng = np.random.default_rng(1300)
+    moving = [m for m in MOTIONS if m != "still"]
+    draws = {}
+    for k in range(1, 14):
+        mo = moving[int(rng.integers(len(moving)))]
+        sp = (1.0, 1.1, 1.2, 1.3, 1.5)[int(rng.integers(5))]
+        draws[k] = (bm._pins(1300 + k, 2 + k % 4), mo, sp)
+    kept = [draws[k] for k in (1, 2, 3, 4, 7, 9, 10, 12)]
+    assert _case_keys(bm, bm.SCREENED_VALIDATION_CASES[5:]) == _case_keys(bm, kept)
 
 
 def test_screen_case_keeps_a_stable_case_and_its_threshold_bites(bm, tmp_path, monkeypatch):
