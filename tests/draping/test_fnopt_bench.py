@@ -167,7 +167,8 @@ def test_screened_fresh_cases_are_the_passing_draws_in_order(bm):
 def test_screen_case_keeps_a_stable_case_and_its_threshold_bites(bm, tmp_path, monkeypatch):
     from draping.fnopt.simulate import SimSettings
 
-    monkeypatch.setattr(bm, "REFS", tmp_path)
+    # the module the function reads it from (bm_fnopt re-exports the split modules' names)
+    monkeypatch.setattr(sys.modules[bm.screen_case.__module__], "REFS", tmp_path)
     s = SimSettings(res=(8, 8), handles="corners", motion="xy", frames=3)
     kept = bm.screen_case(s, every=1)
     assert kept["kept"] and kept["r1_e_cd"] <= 1.0 and kept["r2_e_cd"] <= 1.0
@@ -204,7 +205,32 @@ def test_every_timed_rollout_follows_an_untimed_warm_up_frame(bm, monkeypatch):
         calls.append(s.frames)
         return None, "stub", 0.0
 
-    monkeypatch.setattr(bm, "_rollout", fake)
+    monkeypatch.setattr(sys.modules[bm._measure.__module__], "_rollout", fake)
     s = bm.SimSettings(res=(8, 8), frames=7)
     out = bm._measure(s, None, None, 1)
     assert calls == [1, 7] and out["diverged"] == "stub"
+
+
+def test_the_screened_case_set_gets_its_own_output_name(bm):
+    import argparse
+
+    def tag(part="validation", case_set="all", tag=""):
+        return bm.output_tag(argparse.Namespace(part=part, case_set=case_set, tag=tag))
+
+    assert tag() == "" and tag(case_set="screened") == "screened"
+    assert tag(case_set="screened", tag="x") == "x" and tag("general", "screened") == ""
+
+
+def test_merge_iters_keeps_the_rows_not_run_again(bm):
+    def row(o, n, e):
+        return {"optimizer": o, "iters": n, "e_3d": e}
+
+    old = {"frames": 60, "motion": "xy", "speed": 1.0, "date": "OLD",
+           "runs": [row("gd", 10, 1.0), row("fnopt", 10, 0.1), row("gd", 100, 2.0)]}
+    rec = {"frames": 60, "motion": "xy", "speed": 1.0, "date": "NEW",
+           "runs": [row("gd", 100, 0.5), row("adam", 10, 0.3)]}
+    out = bm.merge_iters(old, rec)
+    assert [(r["optimizer"], r["iters"], r["e_3d"]) for r in out["runs"]] == [
+        ("adam", 10, 0.3), ("fnopt", 10, 0.1), ("gd", 10, 1.0), ("gd", 100, 0.5)]
+    assert out["merged_from"] == "OLD" and out["date"] == "NEW"
+    assert bm.merge_iters(dict(old, frames=30), rec) is rec
