@@ -35,7 +35,7 @@ from .solvers import (
 __all__ = ["FNOConfig", "SpectralConv2d", "FNO", "features", "constant_features",
            "fno_correction", "fno_direction", "fno_inputs",
            "fnopt_iteration", "subspace_update", "solve_fnopt", "STEPS", "RECYCLE_MAX",
-           "check_recycle", "recycled_basis", "carried_basis",
+           "check_recycle", "check_fno_every", "recycled_basis", "carried_basis",
            "N_INPUTS", "load_pretrained", "n_parameters", "stiffness_numbers", "WEIGHTS"]
 
 #: Input channels: preconditioned gradient (3), the previous one (3), previous update (3), mask (1),
@@ -346,7 +346,8 @@ STEPS = ("line", "subspace")
 
 
 def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
-                    create_graph: bool = False, zn=None, const=None, grid=None, extra=None):
+                    create_graph: bool = False, zn=None, const=None, grid=None, extra=None,
+                    proposal: bool = True):
     """FNOpt's update: the classical PCG step's subspace plus the FNO's proposal.
 
     The span of the preconditioned steepest descent ``-z``, the previous update (PCG's memory)
@@ -370,7 +371,9 @@ def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
     grid (:func:`fno_correction`). ``extra`` (inference only): ``(W, HW)``, further directions
     and their Hessian products, given (not computed here: :func:`solve_fnopt` passes a recycled
     basis with products from the start of its solve); they join the learned step only, so
-    the classical step ``da_pcg`` is unchanged.
+    the classical step ``da_pcg`` is unchanged. ``proposal=False`` (inference only): no FNO
+    call and no proposal direction (the span of the classical directions and ``extra``; without
+    ``extra`` the update is the classical one).
 
     Returns
     -------
@@ -378,16 +381,18 @@ def subspace_update(model: FNO, p: StepProblem, g, hvp, z, z_prev, da_prev,
         ``(da, da_pcg, m, m_pcg)``: the update and the classical update ``(B, H, W, 3)``
         (m/s^2), and their model decreases ``(B,)`` (J, float64, <= 0).
     """
-    if create_graph and extra:
-        raise ValueError("extra: supported without create_graph only (inference)")
-    f = fno_correction(model, p, z, z_prev, da_prev, const, grid=grid)
+    if create_graph and (extra or not proposal):
+        raise ValueError("extra / proposal=False: supported without create_graph only (inference)")
     base = [-z * p.free3, da_prev] + (list(zn) if zn is not None else [])
-    if create_graph:
-        hd = p.hessian_products(base, hvp) + [hvp(f, create_graph=True)]
+    if not proposal:
+        dirs, hd = base, p.hessian_products(base, hvp)
+    elif create_graph:
+        f = fno_correction(model, p, z, z_prev, da_prev, const, grid=grid)
+        dirs, hd = base + [f], p.hessian_products(base, hvp) + [hvp(f, create_graph=True)]
     else:
-        f = f.detach()
-        hd = p.hessian_products(base + [f], hvp)
-    dirs = base + [f]
+        f = fno_correction(model, p, z, z_prev, da_prev, const, grid=grid).detach()
+        dirs = base + [f]
+        hd = p.hessian_products(dirs, hvp)
     if extra:
         dirs, hd = dirs + list(extra[0]), hd + list(extra[1])
     k = len(base)
@@ -452,6 +457,22 @@ RECYCLE_MAX = 16
 RECYCLE_TOL = 1e-5
 
 
+def check_fno_every(fno_every) -> None:
+    """Check ``solve_fnopt``'s ``fno_every``: an int >= 1.
+
+    Raises
+    ------
+    TypeError
+        If ``fno_every`` is not an int (``bool`` included).
+    ValueError
+        If it is below 1.
+    """
+    if isinstance(fno_every, bool) or not isinstance(fno_every, int):
+        raise TypeError(f"fno_every: expected an int, got {type(fno_every).__name__}")
+    if fno_every < 1:
+        raise ValueError(f"fno_every: expected an int >= 1, got {fno_every}")
+
+
 def check_recycle(recycle) -> None:
     """Check ``solve_fnopt``'s ``recycle``: an int in ``[0, RECYCLE_MAX]``.
 
@@ -509,7 +530,7 @@ def carried_basis(p: StepProblem, memory: dict) -> list:
 def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "subspace",
                 guard: bool = True, info: dict | None = None, coarse_res: int = 0,
                 stiffness_res: int = 0, recycle: int = 0,
-                memory: dict | None = None) -> torch.Tensor:
+                memory: dict | None = None, fno_every: int = 1) -> torch.Tensor:
     """Algorithm 2: ``iters`` learned updates from ``a = 0``; returns the accelerations.
 
     ``step``: ``"subspace"`` (default, :func:`subspace_update`) or ``"line"`` (the exact
@@ -533,14 +554,20 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
     are unchanged (the learned update, basis included, is kept only if it lowers ``L_cloth``
     at least as much as the classical step's model predicts).
 
+    ``fno_every`` (subspace step; 1, the default: every iteration): the FNO's proposal only at
+    iterations ``k`` with ``k % fno_every == 0`` (the first included); the others take the
+    classical step (with a recycled basis, its span too), one FNO forward and one Hessian
+    product cheaper, and skip the guard where their update is the classical one.
+
     Raises
     ------
     ValueError
         On an unknown ``step``, bad ``coarse_res`` / ``stiffness_res`` (:func:`fno_inputs`), or
         either of them set with ``step="line"``; ``recycle`` out of range
-        (:func:`check_recycle`), set with ``step="line"`` or without ``memory``.
+        (:func:`check_recycle`), set with ``step="line"`` or without ``memory``;
+        ``fno_every`` < 1 or not 1 with ``step="line"``.
     TypeError
-        If ``recycle`` is not an int.
+        If ``recycle`` or ``fno_every`` is not an int.
     """
     if step not in STEPS:
         raise ValueError(f"step: expected one of {list(STEPS)}, got {step!r}")
@@ -548,6 +575,9 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
         raise ValueError("coarse_res / stiffness_res: supported by step='subspace' only, got "
                          f"{coarse_res} / {stiffness_res} with step='line'")
     check_recycle(recycle)
+    check_fno_every(fno_every)
+    if fno_every != 1 and step == "line":
+        raise ValueError(f"fno_every: {fno_every} needs step='subspace' (got 'line')")
     if recycle and (step == "line" or memory is None):
         raise ValueError(f"recycle: {recycle} needs step='subspace' (got {step!r}) and a "
                          f"memory dict (got {type(memory).__name__})")
@@ -572,11 +602,14 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
         more = k < iters - 1              # a next iteration needs the gradient at a + dn
         z = pre(g) * p.free3
         zn = normal_directions(p, g, pn, model.config.normal_split) if pn is not None else None
+        learned = k % fno_every == 0
         with torch.no_grad():
             dn, dn_pcg, _, m_pcg = subspace_update(model, p, g, hvp, z, z_prev, da, zn=zn,
-                                                   const=const, grid=grid, extra=extra)
-        nxt = _evaluate(p, a + dn, more) if (more or guard) else None
-        if guard:
+                                                   const=const, grid=grid, extra=extra,
+                                                   proposal=learned)
+        check = guard and (learned or extra is not None)   # else dn is the classical step
+        nxt = _evaluate(p, a + dn, more) if (more or check) else None
+        if check:
             bad = (nxt[0] - val).double() > m_pcg + slack * val.abs().double()
             if bool(bad.any()):
                 replaced += int(bad.sum())

@@ -1,4 +1,5 @@
-"""FNOpt's recycled subspace (``solve_fnopt(recycle=k, memory=...)``) across frames."""
+"""FNOpt's inference-only options: the recycled subspace across frames
+(``solve_fnopt(recycle=k, memory=...)``) and the FNO on every E-th iteration (``fno_every``)."""
 
 
 import pytest
@@ -152,3 +153,76 @@ def test_simulate_carries_the_basis_across_frames():
     assert torch.equal(got.positions, want.positions)
     assert not torch.equal(got.positions, plain.positions)
     assert "recycle" not in s.key()
+
+
+def _cloth_step(res=12):
+    """A nonlinear cloth step (float64): frame 6 of a fast diagonal/xyz PCG rollout."""
+    sheet = Sheet(res, res)
+    ro = solvers.rollout(sheet, Material(), "diagonal", "xyz", 6,
+                         lambda p, a0: solvers.solve_pcg(p, 10), speed=2.0, dtype=torch.float64)
+    idx = cloth.handle_indices("diagonal", res, res)
+    x = ro.positions[-2][None]
+    v = (ro.positions[-2] - ro.positions[-3])[None] / solvers.DT
+    return solvers.make_problem(x, v, idx, ro.positions[-1][None][:, idx[:, 0], idx[:, 1]],
+                                sheet.hx, sheet.hy, Material().tensors(1, torch.float64))
+
+
+def test_fno_every_calls_the_fno_on_every_eth_iteration_only(monkeypatch):
+    p = _cloth_step()
+    calls = []
+    real = model.fno_correction
+
+    def counted(*args, **kw):
+        calls.append(1)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(model, "fno_correction", counted)
+    for every, want in ((1, 7), (2, 4), (3, 3), (7, 1), (50, 1)):
+        calls.clear()
+        model.solve_fnopt(_net(1), p, 7, fno_every=every)
+        assert len(calls) == want
+
+
+def test_the_iterations_without_the_fno_are_the_classical_steps():
+    # a network whose proposal is zero makes FNOpt the classical PCG iterate by iterate, so the
+    # same solve with the FNO skipped on most iterations must equal both: the skipped
+    # iterations keep the classical directions and memory; a live network does differ
+    p = _cloth_step()
+    zero = _net(1)
+    with torch.no_grad():
+        zero.proj2.weight.zero_()
+        zero.proj2.bias.zero_()
+    pcg = solvers.solve_pcg(p, 6)
+    for every in (1, 2, 4):
+        assert _rel(model.solve_fnopt(zero, p, 6, fno_every=every), pcg, p) < 1e-9
+    live = [model.solve_fnopt(_net(1, gain=30.0), p, 6, fno_every=e) for e in (1, 2, 6)]
+    assert min(_rel(live[0], live[1], p), _rel(live[1], live[2], p),
+               _rel(live[2], pcg, p)) > 1e-6
+
+
+def test_fno_every_never_lets_a_step_raise_the_energy():
+    p = _cloth_step()
+    net = _net(1, gain=3000.0)                                         # wild proposals
+    losses = [float(p.loss(torch.zeros_like(p.x_prev))[0])]
+    for n in range(1, 9):
+        losses.append(float(p.loss(model.solve_fnopt(net, p, n, fno_every=3))[0]))
+    assert all(b <= a + 1e-12 * abs(a) for a, b in zip(losses, losses[1:]))
+    assert losses[-1] < losses[0]
+
+
+@pytest.mark.parametrize("bad, err", [(0, ValueError), (-2, ValueError), (2.0, TypeError),
+                                      (True, TypeError)])
+def test_bad_fno_every_raises(bad, err):
+    with pytest.raises(err, match="fno_every"):
+        model.solve_fnopt(_net(), _springs(), 2, fno_every=bad)
+
+
+def test_fno_every_needs_the_subspace_step_and_inference():
+    p = _springs()
+    with pytest.raises(ValueError, match="subspace"):
+        model.solve_fnopt(_net(), p, 2, fno_every=2, step="line")
+    a = torch.zeros_like(p.x_prev)
+    _, g, hvp = p.grad_hvp(a)
+    z = torch.ones_like(a)
+    with pytest.raises(ValueError, match="proposal"):
+        model.subspace_update(_net(), p, g, hvp, z, z, z, create_graph=True, proposal=False)
