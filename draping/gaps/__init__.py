@@ -59,7 +59,7 @@ if TYPE_CHECKING:
     )
     from .losses import TERMS, body_contacts, loss_terms
     from .model import GapsModel, feature_size, pose_features, top_weights
-    from .pinch import PARTS, PinchQuery, body_part, face_parts, pinch_factor
+    from .pinch import PARTS, PinchQuery, body_part, face_parts, pinch_factor, push_normal
     from .settings import (
         HELD_OUT_MOTIONS,
         INEXTENSIBILITY,
@@ -115,6 +115,7 @@ __all__ = [
     "body_part",
     "face_parts",
     "pinch_factor",
+    "push_normal",
     "HELD_OUT_MOTIONS",
     "INEXTENSIBILITY",
     "METHODS",

@@ -109,6 +109,10 @@ def register_train(sub: argparse._SubParsersAction) -> None:
                    help="GAPS: factor in [0, 1] on L_inext at cloth pinched between an arm and "
                    "the rest of the body (within the clearance of both) and the --k-ext-rings "
                    "1-rings round it; 0: off there (default 1: no pinch test)")
+    p.add_argument("--pinch-push", action="store_true", default=None,
+                   help="GAPS: at cloth pinched between an arm and the rest of the body, measure "
+                   "the collision penetration along the sum of the two facing normals (out of "
+                   "the pinch) instead of the closest part's (default: off)")
     p.add_argument("--replay", type=float, default=None, metavar="P",
                    help="hard-example replay: probability that a step trains again on a recent "
                    "step whose collision loss was in the top decile (default 0)")
@@ -131,7 +135,7 @@ def _settings(args):
             mk[k] = getattr(args, k)
     tk = {"seed": args.seed, "init": args.init}
     for k in ("random_motions", "lr", "lr_epochs", "burn_in", "shapes", "grad_clip",
-              "collision_stiffness", "collision_eps", "k_ext_rings", "replay", "pinch_inext"):
+              "collision_stiffness", "collision_eps", "k_ext_rings", "replay", "pinch_inext", "pinch_push"):
         if getattr(args, k) is not None:
             tk[k] = getattr(args, k)
     if args.batch is not None:

@@ -12,7 +12,7 @@ from draping import physics
 from draping.collision import MeshQuery
 
 from .data import ShapeCase
-from .pinch import PinchQuery, pinch_factor
+from .pinch import PinchQuery, pinch_factor, push_normal
 from .settings import GapsSettings, TrainSettings
 
 __all__ = ["TERMS", "Contacts", "body_contacts", "loss_terms"]
@@ -29,7 +29,8 @@ class Contacts:
     anchor : (N, V, 3) float tensor
         Closest body point (m), the vertex itself where the body is farther than the radius.
     normal : (N, V, 3) float tensor
-        Outward body normal there (zero when far).
+        Outward body normal there (zero when far); at pinched cloth, when asked
+        (``body_contacts(push=True)``), the normalised sum of the two facing parts' normals.
     near : (N, V) bool tensor
         Within the query radius.
     pinched : (N, V) bool tensor or None
@@ -52,7 +53,7 @@ class Contacts:
 
 def body_contacts(x: torch.Tensor, body_vertices: torch.Tensor, query: MeshQuery,
                   radius: float, pinch: PinchQuery | None = None,
-                  eps: float = 0.0) -> Contacts:
+                  eps: float = 0.0, push: bool = False) -> Contacts:
     """Query each frame's posed body at the garment positions.
 
     Parameters
@@ -69,7 +70,18 @@ def body_contacts(x: torch.Tensor, body_vertices: torch.Tensor, query: MeshQuery
         Also flag the cloth pinched between an arm and the rest of the body (``pinched``).
     eps : float
         Clearance (m) of the pinch test; > 0 with ``pinch``.
+    push : bool
+        At pinched cloth, the contact normal is :func:`draping.gaps.push_normal`'s (the
+        collision penetration measured along the bisector of the two facing normals;
+        ``TrainSettings.pinch_push``). Needs ``pinch``.
+
+    Raises
+    ------
+    ValueError
+        ``push`` without ``pinch``.
     """
+    if push and pinch is None:
+        raise ValueError("push: needs a PinchQuery (pinch)")
     xs = x.detach().double().cpu().numpy()
     n, v, _ = xs.shape
     anchor = np.empty((n, v, 3))
@@ -85,7 +97,9 @@ def body_contacts(x: torch.Tensor, body_vertices: torch.Tensor, query: MeshQuery
         anchor[i] = np.where(ok[:, None], r.closest, xs[i])
         normal[i, ok] = r.normal[ok]
         if pinch is not None:
-            pinched[i] = pinch.pinched(bv, xs[i], r.distance, r.face, normal[i], eps)
+            pinched[i], other = pinch.facing(bv, xs[i], r.distance, r.face, normal[i], eps)
+            if push:
+                normal[i] = push_normal(normal[i], other, pinched[i])
     t = x.dtype
     return Contacts(torch.from_numpy(anchor).to(t), torch.from_numpy(normal).to(t),
                     torch.from_numpy(near), None if pinched is None else torch.from_numpy(pinched))

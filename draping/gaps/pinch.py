@@ -7,7 +7,9 @@ both: the collision term pushes it out of one part into the other. GAPS's covari
 inextensibility (eq. (44)) holds that cloth in place where NCS-like, without the term, lets it
 stretch out of the pinch (``benchmarks/gaps_contacts.py`` finds the remaining dress contacts of
 GAPS mostly pinched between arm and torso). ``TrainSettings.pinch_inext`` scales L_inext at the
-pinched cloth (0: off there); this module finds it.
+pinched cloth (0: off there); ``TrainSettings.pinch_push`` measures the collision penetration
+there along the bisector of the two facing normals (:func:`push_normal`), out of the wedge
+rather than into the other part. This module finds the pinched cloth.
 
 Eq. (44) is ``|det(C - k_ext sigma I)|``, two-sided, so no ``k_ext`` frees a neighbourhood:
 the lever is a per-vertex factor on the term, not a ``k_ext``.
@@ -20,7 +22,7 @@ import torch
 
 from draping.collision import MeshQuery
 
-__all__ = ["PARTS", "PinchQuery", "body_part", "face_parts", "pinch_factor"]
+__all__ = ["PARTS", "PinchQuery", "body_part", "face_parts", "pinch_factor", "push_normal"]
 
 #: Body parts a face is attributed to (the dominant bone of its first vertex).
 PARTS = ("torso", "legL", "legR", "armL", "armR")
@@ -79,6 +81,13 @@ class PinchQuery:
     def pinched(self, body_vertices, x, distance, face, normal, eps: float) -> np.ndarray:
         """``(V,)`` bool: vertices within ``eps`` of an arm and of a non-arm face facing it.
 
+        The first output of :meth:`facing`; same parameters.
+        """
+        return self.facing(body_vertices, x, distance, face, normal, eps)[0]
+
+    def facing(self, body_vertices, x, distance, face, normal, eps: float):
+        """Pinched vertices and the outward normal of the other part (the one not closest).
+
         Parameters
         ----------
         body_vertices : (Vb, 3) float
@@ -93,18 +102,26 @@ class PinchQuery:
 
         Returns
         -------
-        (V,) bool array
+        pinched : (V,) bool array
             Within ``eps`` (signed, so inside too) of its closest part, and within ``eps``
             (unsigned) of the other group, with outward normals facing (``n_a . n_b < 0``):
             where two parts merely meet (a shoulder), the normals agree and it is no pinch.
+        other : (V, 3) float64 array
+            Outward normal of the other group's closest face at pinched vertices, 0 elsewhere.
+
+        Raises
+        ------
+        ValueError
+            ``eps`` not a positive finite clearance.
         """
         if not (np.isfinite(eps) and eps > 0):
             raise ValueError(f"eps: expected a positive clearance, got {eps!r}")
         d = np.asarray(distance)
         out = np.zeros(d.shape, dtype=bool)
+        other = np.zeros((d.shape[0], 3))
         cand = np.nonzero(d < eps)[0]
         if cand.size == 0:
-            return out
+            return out, other
         on_arm = self.arm[np.asarray(face)[cand]]
         xs = np.asarray(x)
         for k, q in enumerate(self.parts):  # k = 0: arm mesh, for candidates not on an arm
@@ -115,8 +132,52 @@ class PinchQuery:
             r = q.query(xs[sel], max_distance=eps)
             dd, nn = np.abs(np.asarray(r.distance)), np.asarray(r.normal)
             facing = (nn * np.asarray(normal)[sel]).sum(-1) < 0
-            out[sel] = np.isfinite(dd) & (dd < eps) & facing
-        return out
+            hit = np.isfinite(dd) & (dd < eps) & facing
+            out[sel] = hit
+            other[sel[hit]] = nn[hit]
+        return out, other
+
+
+def push_normal(normal, other, pinched) -> np.ndarray:
+    """Collision normals that push pinched cloth out of the wedge between two body parts.
+
+    At a pinched vertex the closest part's normal alone pushes the cloth into the other part;
+    the normalised sum of the two facing normals points out of the wedge, along its bisector
+    (``TrainSettings.pinch_push``). Where the sum is shorter than 1e-3 (parallel, opposite
+    surfaces: no way out) the closest part's normal is kept.
+
+    Parameters
+    ----------
+    normal : (V, 3) float array
+        Outward normal of the closest body part (unit, or 0 out of reach).
+    other : (V, 3) float array
+        Outward normal of the other part (:meth:`PinchQuery.facing`).
+    pinched : (V,) bool array
+
+    Returns
+    -------
+    (V, 3) float64 array
+        ``normal`` with the pinched rows replaced by ``normalise(normal + other)``.
+
+    Raises
+    ------
+    ValueError
+        Shapes that do not match, ``pinched`` not bool, or a non-finite normal.
+    """
+    n = np.asarray(normal, dtype=np.float64)
+    o = np.asarray(other, dtype=np.float64)
+    p = np.asarray(pinched)
+    if n.ndim != 2 or n.shape[1] != 3 or o.shape != n.shape:
+        raise ValueError(f"normal, other: expected two (V, 3) arrays, got {n.shape}, {o.shape}")
+    if p.dtype != bool or p.shape != n.shape[:1]:
+        raise ValueError(f"pinched: expected a bool array of shape ({n.shape[0]},), got "
+                         f"{p.dtype} {p.shape}")
+    if not (np.isfinite(n).all() and np.isfinite(o).all()):
+        raise ValueError("normal, other: expected finite normals")
+    s = n + o
+    length = np.linalg.norm(s, axis=-1, keepdims=True)
+    pushed = np.where(length > 1e-3, s / np.maximum(length, 1e-12), n)
+    return np.where(p[:, None], pushed, n)
 
 
 def pinch_factor(pinched, rest, rings: int, factor: float) -> torch.Tensor:

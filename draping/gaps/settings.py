@@ -201,6 +201,11 @@ class TrainSettings:
         of the body (within ``collision_eps`` of both, their surfaces facing) and within
         ``k_ext_rings`` 1-rings of it (:mod:`draping.gaps.pinch`); 0 lets that cloth stretch out
         of the pinch as NCS-like's (no L_inext) does. 1: no pinch test, the old behaviour.
+    pinch_push : bool
+        At that pinched cloth, measure the collision penetration (eq. (40)) along the
+        normalised sum of the two facing parts' normals (:func:`draping.gaps.push_normal`: out
+        of the wedge) instead of the closest part's normal (into the other part). False: the
+        old behaviour.
     query_radius : float
         Body distance queries stop at this distance (m): farther vertices cannot collide.
     seed : int
@@ -237,6 +242,7 @@ class TrainSettings:
     k_ext_rings: int = 0
     inext_weight: float = 2e8
     pinch_inext: float = 1.0
+    pinch_push: bool = False
     query_radius: float = 0.02
     seed: int = 0
     checkpoint_every: int = 100
@@ -266,6 +272,10 @@ class TrainSettings:
             raise ValueError(f"pinch_inext: expected a factor in [0, 1], got {self.pinch_inext!r}")
         if self.pinch_inext != 1.0 and self.collision_eps <= 0:
             raise ValueError("pinch_inext: needs collision_eps > 0 (the pinch test's clearance)")
+        if not isinstance(self.pinch_push, bool):
+            raise TypeError(f"pinch_push: expected a bool, got {type(self.pinch_push).__name__}")
+        if self.pinch_push and self.collision_eps <= 0:
+            raise ValueError("pinch_push: needs collision_eps > 0 (the pinch test's clearance)")
         if check_positive(self.replay, "replay", strict=False) >= 1.0:
             raise ValueError(f"replay: expected a probability in [0, 1), got {self.replay!r}")
         if not self.speeds or not all(math.isfinite(s) and s > 0 for s in self.speeds):
@@ -276,7 +286,7 @@ class TrainSettings:
 
         A run continued for more steps is the same run; the model's part is
         :meth:`GapsSettings.key_dict`. ``k_ext_rings`` and ``replay`` are left out when 0 and
-        ``pinch_inext`` when 1, so the keys of runs from before they existed do not change.
+        ``pinch_inext`` when 1 and ``pinch_push`` when False, so the keys of runs from before they existed do not change.
         """
         d = dataclasses.asdict(self)
         for k in ("steps", "checkpoint_every"):
@@ -286,6 +296,8 @@ class TrainSettings:
                 d.pop(k)
         if d["pinch_inext"] == 1.0:
             d.pop("pinch_inext")
+        if not d["pinch_push"]:
+            d.pop("pinch_push")
         d["model"] = self.model.key_dict()
         return d
 

@@ -74,7 +74,8 @@ class Trainer:
         self.sequences = training_sequences(settings, self.body)
         self.query = MeshQuery(self.body.rest()[0][0].double(), self.body.faces)
         self.pinch = None
-        if settings.pinch_inext != 1.0 and settings.model.inext_mode != "none":
+        if settings.pinch_push or (settings.pinch_inext != 1.0
+                                   and settings.model.inext_mode != "none"):
             arm = np.isin(face_parts(self.body), ("armL", "armR"))
             self.pinch = PinchQuery(self.body.rest()[0][0].double(), self.body.faces, arm)
         self.dt = 1.0 / 30.0
@@ -207,7 +208,7 @@ class Trainer:
         x = m.skin((rest_v + disp).reshape(b * n_l, -1, 3), posed.transforms)
         c2 = time.process_time()
         contacts = body_contacts(x, posed.vertices, self.query, s.query_radius, self.pinch,
-                                 s.collision_eps)
+                                 s.collision_eps, push=s.pinch_push)
         c3 = time.process_time()
         terms = loss_terms(x.reshape(b, n_l, -1, 3), case, m.settings, s, contacts,
                            self.epoch(step), self.dt)
