@@ -149,10 +149,11 @@ def _dct_rows(n: int, cut: int) -> torch.Tensor:
     """The first ``min(cut, n)`` rows ``(cut, n)`` of the orthonormal DCT-II matrix, float64."""
     k = min(cut, n)
     if (n, k) not in _DCT_ROWS:
-        i = torch.arange(k, dtype=torch.float64)[:, None]
-        j = torch.arange(n, dtype=torch.float64)[None]
-        a = torch.cos(math.pi * i * (2 * j + 1) / (2 * n)) * math.sqrt(2.0 / n)
-        a[0] /= math.sqrt(2.0)
+        with torch.inference_mode(False):         # a normal tensor, also when built in one
+            i = torch.arange(k, dtype=torch.float64)[:, None]
+            j = torch.arange(n, dtype=torch.float64)[None]
+            a = torch.cos(math.pi * i * (2 * j + 1) / (2 * n)) * math.sqrt(2.0 / n)
+            a[0] /= math.sqrt(2.0)
         _DCT_ROWS[(n, k)] = a
     return _DCT_ROWS[(n, k)]
 

@@ -89,7 +89,8 @@ class StepProblem:
         cache = self.__dict__.get("_free3")
         if cache is None or cache[0] != key:
             f = self.free
-            cache = (key, f.expand(*f.shape[:-1], 3).contiguous(), f)
+            with torch.inference_mode(False):     # a normal tensor, also when built in one
+                cache = (key, f.expand(*f.shape[:-1], 3).contiguous(), f)
             self.__dict__["_free3"] = cache
         return cache[1]
 
@@ -155,6 +156,17 @@ class StepProblem:
 
         hvp.many = many
         return val.detach(), g.detach() * free, hvp
+
+    def autograd_free(self) -> bool:
+        """Whether :meth:`grad_hvp` runs without autograd (closed forms, fused kernels).
+
+        True with the closed-form products (``analytic_hvp``) and the fused loss and gradient
+        (:meth:`_fusable`): then a solve may run under ``torch.inference_mode``
+        (:func:`draping.fnopt.model.solve_fnopt` does); else the gradient comes from
+        autograd, which that mode switches off.
+        """
+        return (self.analytic_hvp and self.extra is None and type(self).loss is StepProblem.loss
+                and self._fusable())
 
     def _fusable(self) -> bool:
         """The fused kernels apply: ``fused`` on, ``L_cloth`` itself, a grid >= 3 x 3."""

@@ -15,9 +15,10 @@ F64 = torch.float64
 
 def _autograd(a, x_prev, v_prev, hx, hy, material, dt, mass, consts=None):
     """The reference: ``L_cloth`` and its gradient by autograd (float64 when the inputs are);
-    ``consts`` (the kernel's cached constants) ignored."""
-    with torch.enable_grad():
-        a = a.detach().requires_grad_(True)
+    ``consts`` (the kernel's cached constants) ignored. Callable from an inference-mode solve
+    (``solve_fnopt``): autograd runs on a normal copy of ``a``."""
+    with torch.inference_mode(False), torch.enable_grad():
+        a = a.detach().clone().requires_grad_(True)
         val = cloth.cloth_loss(a, x_prev, v_prev, hx, hy, material, dt, mass)
         (g,) = torch.autograd.grad(val.sum(), a)
     return val.detach(), g

@@ -96,6 +96,32 @@ def test_training_forward_passes_gradcheck():
     assert torch.autograd.gradcheck(lambda t: net(t), (x,), eps=1e-6, atol=1e-6)
 
 
+@pytest.mark.parametrize("k,j,kept", [(0, 0, True), (1, 2, True), (2, 1, True), (10, 1, True),
+                                        (9, 2, True), (3, 1, False), (1, 3, False),
+                                        (8, 0, False), (0, 4, False)])
+def test_spectral_layer_passes_exactly_the_kept_modes(k, j, kept):
+    # analytic truth: with unit weights the layer projects onto its kept Fourier modes (rows
+    # 0..m1-1 and H-m1..H-1, columns 0..m2-1), so a plane wave at a kept frequency comes out
+    # unchanged and one at a dropped frequency comes out zero; both transforms (FFT and the
+    # interleaved DFT matrices) and both directions of the wave (cos and sin)
+    h, w = 12, 10
+    conv = model.SpectralConv2d(1, 1, 3).double()
+    with torch.no_grad():
+        conv.w.zero_()
+        conv.w[..., 0] = 1.0
+    yy, xx = torch.meshgrid(torch.arange(h, dtype=F64), torch.arange(w, dtype=F64),
+                            indexing="ij")
+    phase = 2 * math.pi * (k * yy / h + j * xx / w)
+    x = torch.stack([torch.cos(phase), torch.sin(phase)])[:, None]       # (2, 1, H, W)
+    want = x if kept else torch.zeros_like(x)
+    fft = conv(x).detach()
+    with torch.no_grad():
+        dft = conv.forward_dft(x)
+        acc = conv.forward_dft(x, acc=torch.zeros_like(x))
+    for got in (fft, dft, acc):
+        assert torch.allclose(got, want, rtol=0, atol=1e-12)
+
+
 def test_spectral_accumulation_adds_in_place():
     torch.manual_seed(6)
     conv = model.SpectralConv2d(3, 4, 4).double()
@@ -266,3 +292,60 @@ def test_free_rms_is_one_rms_for_both_grids():
     r = torch.randn(p.x_prev.shape, generator=torch.Generator().manual_seed(3), dtype=F64)
     n = float(p.free.sum()) * 3
     assert torch.allclose(p.residual_rms(r), ((r * p.free) ** 2).sum((1, 2, 3)).div(n).sqrt())
+
+
+def _solve_pair(net, p, **kw):
+    """``solve_fnopt`` (inference mode where it applies) and the same solve without it."""
+    mem_a, mem_b = {}, {}
+    fast = model.solve_fnopt(net, p, 6, memory=mem_a if kw.get("recycle") else None, **kw)
+    args = dict(a0=None, step="subspace", guard=True, info=None, coarse_res=0, stiffness_res=0,
+                recycle=0, memory=mem_b if kw.get("recycle") else None, fno_every=1)
+    args.update(kw)
+    with torch.no_grad():
+        plain = model._solve(net, p, 6, *args.values())
+    return fast, plain, mem_a, mem_b
+
+
+@pytest.mark.parametrize("kw", [{}, {"fno_every": 2}, {"coarse_res": 5}, {"recycle": 3},
+                                {"step": "line"}])
+def test_the_inference_mode_solve_is_the_plain_solve_bit_for_bit(kw):
+    net = model.load_pretrained()
+    p = random_problem(9, torch.float32, 7)
+    assert p.autograd_free()
+    fast, plain, mem_a, mem_b = _solve_pair(net, p, **kw)
+    assert torch.equal(fast, plain) and not fast.is_inference()
+    fast.add_(1.0)                                      # the caller may change it in place
+    if kw.get("recycle"):
+        assert len(mem_a["basis"]) == len(mem_b["basis"]) > 0
+        for u, v in zip(mem_a["basis"] + [mem_a["x_next"]], mem_b["basis"] + [mem_b["x_next"]]):
+            assert torch.equal(u, v) and not u.is_inference()
+
+
+def test_a_problem_that_needs_autograd_is_solved_without_inference_mode():
+    net = model.load_pretrained()
+    p = random_problem(9, torch.float32, 8)
+    p.fused = False                                     # the gradient comes from autograd
+    assert not p.autograd_free()
+    fast, plain, _, _ = _solve_pair(net, p)
+    assert torch.equal(fast, plain)
+
+
+def test_an_inference_solve_leaves_caches_that_training_can_use():
+    # caches built during an inference-mode solve (kept weights, DFT / DCT matrices, the
+    # expanded mask) are normal tensors: training on the same grid afterwards backpropagates
+    from draping.fnopt import tbptt
+
+    net = model.load_pretrained()
+    p = random_problem(11, torch.float32, 9)
+    model._DFT_CACHE.clear()
+    preconditioners._DCT_ROWS.clear()
+    for sp in net.spectral:
+        sp.__dict__.pop("_kept", None)
+    model.solve_fnopt(net, p, 3)
+    cached = [p.free3, *preconditioners._DCT_ROWS.values(),
+              *(t for v in model._DFT_CACHE.values() for t in v),
+              *(sp._kept[1] for sp in net.spectral)]
+    assert cached and not any(t.is_inference() for t in cached)
+    a, _ = tbptt.unrolled_solve(net, p, 2)
+    a.square().sum().backward()
+    assert all(q.grad is not None for q in net.spectral.parameters())
