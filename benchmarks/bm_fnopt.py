@@ -226,6 +226,11 @@ def main() -> None:
     ap.add_argument("--recycle", type=int, default=0, help="validation / general parts: "
                     "carry the span of each solve's last K updates to the next frame's solve "
                     "(solve_fnopt(recycle=K); 0: off)")
+    ap.add_argument("--fno-every", type=int, default=1, help="validation / general parts: "
+                    "the FNO's proposal on every E-th iteration only, the classical step between "
+                    "(solve_fnopt(fno_every=E); 1: every iteration)")
+    ap.add_argument("--val-iters", type=int, default=10, help="validation part: FNOpt's "
+                    "iterations per step")
     ap.add_argument("--merge", action="store_true", help="general part: replace only the rows "
                     "run now in the existing JSON (same res and frames), keep the others")
     ap.add_argument("--lbfgs-iters", default="20,50,100,150,200,300;20,50,100,150,200,300;"

@@ -90,14 +90,16 @@ def screen_case(s: SimSettings, threshold: float = 1.0, every: int = 3) -> dict:
 
 
 def part_validation(args, net) -> dict:
-    """N = 10 rollouts of :data:`VALIDATION_CASES` at ``--res`` (45 frames) per candidate.
+    """N = ``--val-iters`` (default 10) rollouts of :data:`VALIDATION_CASES` at ``--res`` (45
+    frames) per candidate.
 
     ``--candidates``: comma-separated weight paths (``shipped``: the package's). Per candidate
     the per-case e_CD x 1e3 / e_3D, their geometric means and the worst e_CD: how weights are
     chosen (by seeds and settings) without looking at the benchmark's cases.
     """
     cases = SCREENED_VALIDATION_CASES if args.case_set == "screened" else VALIDATION_CASES
-    rec = {"res": args.res, "frames": 45, "iters": 10, "case_set": args.case_set,
+    rec = {"res": args.res, "frames": 45, "iters": args.val_iters, "case_set": args.case_set,
+           "fno_options": _fno_options(args),
            "cases": [list(c) for c in cases], "runs": []}
     for w in args.candidates.split(","):
         model = load_pretrained(None if w == "shipped" else w)
@@ -105,7 +107,7 @@ def part_validation(args, net) -> dict:
         for lay, mo, sp in cases:
             s = SimSettings(res=(args.res, args.res), handles=lay, motion=mo, frames=45,
                             speed=sp)
-            r = _measure(s, _step("fnopt", 10, model, fno=_fno_options(args)),
+            r = _measure(s, _step("fnopt", args.val_iters, model, fno=_fno_options(args)),
                          reference_rollout(s, REFS), 3)
             cd.append(r.get("e_cd", float("inf")))
             e3.append(r.get("e_3d", float("inf")))

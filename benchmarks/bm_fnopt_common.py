@@ -84,9 +84,10 @@ EQUAL_ERROR_METRIC = "e_3d"
 
 
 def _fno_options(args) -> dict:
-    """``solve_fnopt``'s options from ``--coarse-res`` / ``--stiffness-res`` / ``--recycle``."""
+    """``solve_fnopt``'s options from ``--coarse-res`` / ``--stiffness-res`` / ``--recycle`` /
+    ``--fno-every``."""
     return {"coarse_res": args.coarse_res, "stiffness_res": args.stiffness_res,
-            "recycle": args.recycle}
+            "recycle": args.recycle, "fno_every": args.fno_every}
 
 
 def _step(name: str, n: int, net=None, lr=None, fno: dict | None = None, **kw):
