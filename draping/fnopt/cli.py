@@ -130,6 +130,9 @@ def register_simulate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--recycle", type=int, default=0,
                    help="fnopt: carry the span of each solve's last K updates to the next "
                    "frame's solve as extra directions (0: off; default 0)")
+    p.add_argument("--fno-every", type=int, default=1,
+                   help="fnopt: the FNO's proposal on every E-th iteration only, the classical "
+                   "step between (E >= --iters: the first iteration only; default 1)")
     p.add_argument("--lr", type=float, default=None,
                    help="gd/adam step size, lbfgs step scale (default gd: per sheet the "
                    "stable step from a curvature bound, adam 0.1, lbfgs 1.0)")
@@ -164,7 +167,7 @@ def run_simulate(args: argparse.Namespace) -> int:
                     iters=args.iters, lr=args.lr,
                     material=Material(args.stretch, args.shear, args.bend),
                     repulsion=args.repulsion, fno_coarse=args.fno_coarse,
-                    recycle=args.recycle)
+                    recycle=args.recycle, fno_every=args.fno_every)
     out = Path(args.out)
     bar = runs.progress(total=s.frames, desc=s.optimizer, quiet=args.quiet)
     ro = run(s, progress=lambda: bar.update(1))

@@ -42,6 +42,8 @@ class SimSettings:
     has this many vertices (``solve_fnopt(coarse_res=...)``, :mod:`draping.fnopt.coarse`).
     ``recycle`` (FNOpt only; 0, the default: off): carry the span of each solve's last
     ``recycle`` updates to the next frame's solve (``solve_fnopt(recycle=...)``).
+    ``fno_every`` (FNOpt only; 1, the default: every iteration): the FNO's proposal on every
+    ``fno_every``-th iteration only, the classical step between (``solve_fnopt(fno_every=...)``).
     """
 
     res: tuple = (64, 64)
@@ -58,6 +60,7 @@ class SimSettings:
     orientation: str = "vertical"
     fno_coarse: int = 0
     recycle: int = 0
+    fno_every: int = 1
 
     def __post_init__(self) -> None:
         if self.optimizer not in OPTIMIZERS:
@@ -72,9 +75,10 @@ class SimSettings:
             raise ValueError(f"frames: expected an int >= 1, got {self.frames!r}")
         self.res = tuple(int(r) for r in self.res)
         check_grid_option(self.fno_coarse, "fno_coarse")
-        from .model import check_recycle
+        from .model import check_fno_every, check_recycle
 
         check_recycle(self.recycle)
+        check_fno_every(self.fno_every)
 
     def sheet(self) -> cloth.Sheet:
         """The grid sheet."""
@@ -83,7 +87,7 @@ class SimSettings:
     def key(self) -> dict:
         """What the reference rollout depends on."""
         d = asdict(self)
-        for k in ("optimizer", "iters", "lr", "fno_coarse", "recycle"):
+        for k in ("optimizer", "iters", "lr", "fno_coarse", "recycle", "fno_every"):
             d.pop(k)
         return d
 
@@ -103,8 +107,9 @@ def step_function(settings: SimSettings, model=None):
         from .model import load_pretrained, solve_fnopt
 
         net = model if model is not None else load_pretrained()
-        k, r, memory = settings.fno_coarse, settings.recycle, {}
-        return lambda p, a0: solve_fnopt(net, p, n, coarse_res=k, recycle=r, memory=memory)
+        k, r, e, memory = settings.fno_coarse, settings.recycle, settings.fno_every, {}
+        return lambda p, a0: solve_fnopt(net, p, n, coarse_res=k, recycle=r, memory=memory,
+                                         fno_every=e)
     lr = settings.lr if settings.lr is not None else DEFAULT_LR[name]
     if name == "lbfgs":
         return lambda p, a0: CLASSICAL[name](p, n, step=lr, fused_grad=True)

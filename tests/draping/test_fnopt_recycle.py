@@ -226,3 +226,15 @@ def test_fno_every_needs_the_subspace_step_and_inference():
     z = torch.ones_like(a)
     with pytest.raises(ValueError, match="proposal"):
         model.subspace_update(_net(), p, g, hvp, z, z, z, create_graph=True, proposal=False)
+
+
+def test_simulate_passes_fno_every_and_checks_it():
+    net = _net(0, dtype=torch.float32)
+    s = SimSettings(res=(10, 10), handles="diagonal", motion="xyz", frames=4, iters=6,
+                    fno_every=6)
+    want = solvers.rollout(s.sheet(), s.material, s.handles, s.motion, s.frames,
+                           lambda p, a0: model.solve_fnopt(net, p, 6, fno_every=6), s.speed)
+    assert torch.equal(run(s, model=net).positions, want.positions)
+    assert "fno_every" not in s.key()
+    with pytest.raises(ValueError, match="fno_every"):
+        SimSettings(fno_every=0)
