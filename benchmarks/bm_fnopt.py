@@ -31,7 +31,8 @@ and the timed rollout they share. This file re-exports their public names.
 
 All timings are CPU times of one thread on a shared, busy 2-core machine: ``cpu_ms_per_frame``
 is the whole rollout's process time per frame (problem set-up, the float64 energy record and
-the state update included), ``step_cpu_ms`` the optimiser's own thread time per frame; every
+the state update included), ``step_cpu_ms`` the optimiser's own thread time per frame (rows
+needing no autograd run under ``torch.inference_mode``, as ``solve_fnopt`` does); every
 timed rollout follows one untimed frame of the same optimiser (the process's one-time warm-up,
 ~0.6 s, is not a per-frame cost).
 
@@ -84,8 +85,10 @@ from bm_fnopt_common import (  # noqa: E402,F401
     _measure,
     _plt,
     _rollout,
+    _row,
     _step,
     chart_iters,
+    inference_mode,
 )
 from bm_fnopt_speedup import (  # noqa: E402,F401
     equal_error_speedup,

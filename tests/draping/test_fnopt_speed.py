@@ -224,9 +224,8 @@ def test_32x32_shipped_solve_with_the_fast_paths_equals_the_torch_one():
     assert torch.allclose(got, want, rtol=1e-9, atol=1e-9 * float(want.abs().max()))
 
 
-def test_benchmark_gives_the_classical_rows_the_fused_gradient(monkeypatch):
-    """``bm_fnopt._step``: ``lbfgs`` (and GD, Adam, our L-BFGS variants) with the fused
-    gradient, ``<name>-autograd`` with autograd's; the strong-Wolfe rows unchanged."""
+def _bm():
+    """``benchmarks/bm_fnopt.py`` as a module (loaded once)."""
     import importlib.util
     import sys
     from pathlib import Path
@@ -237,6 +236,13 @@ def test_benchmark_gives_the_classical_rows_the_fused_gradient(monkeypatch):
     bm = sys.modules["bm_fnopt"]
     if not hasattr(bm, "_step"):
         spec.loader.exec_module(bm)
+    return bm
+
+
+def test_benchmark_gives_the_classical_rows_the_fused_gradient(monkeypatch):
+    """``bm_fnopt._step``: ``lbfgs`` (and GD, Adam, our L-BFGS variants) with the fused
+    gradient, ``<name>-autograd`` with autograd's; the strong-Wolfe rows unchanged."""
+    bm = _bm()
     seen = []
 
     def spy(name):
@@ -349,3 +355,28 @@ def test_an_inference_solve_leaves_caches_that_training_can_use():
     a, _ = tbptt.unrolled_solve(net, p, 2)
     a.square().sum().backward()
     assert all(q.grad is not None for q in net.spectral.parameters())
+
+
+def test_benchmark_times_the_fused_rows_in_inference_mode_like_fnopt(monkeypatch):
+    """``bm_fnopt._step``: the rows on the fused gradient (and PCG / PGD) run under
+    ``torch.inference_mode`` as ``solve_fnopt`` does, bit for bit the same result returned as a
+    normal tensor; the autograd and strong-Wolfe rows do not (they need autograd)."""
+    bm = _bm()
+    p = _problem()
+    got = bm._step("lbfgs", 5)(p, None)
+    assert torch.equal(got, bm._row("lbfgs", 5)(p, None)) and not got.is_inference()
+    seen = []
+
+    def spy(name):
+        def f(p, n, **kw):
+            seen.append((name, torch.is_inference_mode_enabled()))
+            return p.x_prev
+        return f
+
+    for name in ("solve_lbfgs", "solve_lbfgs_wolfe", "solve_pcg", "solve_pgd"):
+        monkeypatch.setattr(solvers, name, spy(name))
+    monkeypatch.setitem(solvers.CLASSICAL, "gd", spy("solve_gd"))
+    for name in ("lbfgs", "lbfgs-autograd", "gd", "pcg", "pgd", "lbfgs-wolfe"):
+        bm._step(name, 3)(p, None)
+    assert seen == [("solve_lbfgs", True), ("solve_lbfgs", False), ("solve_gd", True),
+                    ("solve_pcg", True), ("solve_pgd", True), ("solve_lbfgs_wolfe", False)]
