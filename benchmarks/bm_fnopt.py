@@ -31,8 +31,9 @@ and the timed rollout they share. This file re-exports their public names.
 
 All timings are CPU times of one thread on a shared, busy 2-core machine: ``cpu_ms_per_frame``
 is the whole rollout's process time per frame (problem set-up, the float64 energy record and
-the state update included), ``step_cpu_ms`` the optimiser's own thread time per frame (rows
-needing no autograd run under ``torch.inference_mode``, as ``solve_fnopt`` does); every
+the state update included), ``step_cpu_ms`` the optimiser's own thread time per frame (the
+solvers run under ``torch.inference_mode`` where their problem needs no autograd, as in
+``polygeo simulate``); every
 timed rollout follows one untimed frame of the same optimiser (the process's one-time warm-up,
 ~0.6 s, is not a per-frame cost).
 
@@ -88,9 +89,9 @@ from bm_fnopt_common import (  # noqa: E402,F401
     _row,
     _step,
     chart_iters,
-    inference_mode,
 )
 from bm_fnopt_speedup import (  # noqa: E402,F401
+    chart_fnopt_vs_pcg,
     equal_error_speedup,
     merge_iters,
     pareto_front,
@@ -288,6 +289,10 @@ def main() -> None:
     path.write_text(json.dumps(rec, indent=1))
     if args.part in ("iters", "lbfgs"):
         chart_iters(rec, OUT / f"bm_fnopt_{tag}.png")
+    if args.part == "iters":
+        eq = chart_fnopt_vs_pcg(rec, OUT / f"bm_fnopt_{tag}_pcg.png")
+        if eq is not None:
+            print(json.dumps({"fnopt_vs_pcg_n": eq}), flush=True)
     elif args.part == "reference":
         lays = list(dict.fromkeys(r["layout"] for r in rec["runs"]))
         curves = {lay: [r["max_vertex_m"] for r in rec["runs"] if r["layout"] == lay]

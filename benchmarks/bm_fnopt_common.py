@@ -12,7 +12,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from draping.fnopt import solvers
 from draping.fnopt.model import solve_fnopt
@@ -91,33 +90,15 @@ def _fno_options(args) -> dict:
             "recycle": args.recycle, "fno_every": args.fno_every}
 
 
-def inference_mode(step):
-    """``step`` run under ``torch.inference_mode`` where its problem needs no autograd.
-
-    As :func:`draping.fnopt.model.solve_fnopt` runs itself (``StepProblem.autograd_free``):
-    the same arithmetic bit for bit without autograd's per-operation bookkeeping (fused L-BFGS
-    8-13 % less time per frame, session 14), so the classical rows on the fused gradient are
-    timed like FNOpt's; the result is returned as a normal tensor.
-    """
-    def run(p, a0):
-        if not p.autograd_free():
-            return step(p, a0)
-        with torch.inference_mode():
-            out = step(p, a0)
-        return out.clone()
-    return run
-
-
 def _step(name: str, n: int, net=None, lr=None, fno: dict | None = None, **kw):
     """The optimiser row ``name`` with ``n`` iterations: a ``(problem, a0) -> a`` step.
 
-    Rows on the fused gradient (and PCG / PGD) run under :func:`inference_mode`, like FNOpt's
-    solve; ``<name>-autograd`` rows and PyTorch's strong-Wolfe L-BFGS keep autograd.
+    The solvers themselves run under ``torch.inference_mode`` where their problem needs no
+    autograd (:func:`draping.fnopt.step_problem.autograd_free_call`: FNOpt, PCG / PGD and the
+    rows on the fused gradient), as ``polygeo simulate`` runs them; ``<name>-autograd`` rows
+    and PyTorch's strong-Wolfe L-BFGS keep autograd.
     """
-    step = _row(name, n, net, lr, fno, **kw)
-    fused = kw.get("fused_grad", True) and not name.endswith(AUTOGRAD)
-    wolfe = name.startswith("lbfgs-wolfe")
-    return inference_mode(step) if fused and not wolfe and not name.startswith("fnopt") else step
+    return _row(name, n, net, lr, fno, **kw)
 
 
 def _row(name: str, n: int, net=None, lr=None, fno: dict | None = None, **kw):

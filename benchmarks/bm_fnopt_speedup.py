@@ -76,6 +76,44 @@ def merge_iters(old: dict, rec: dict) -> dict:
     return dict(rec, runs=runs, merged_from=old.get("merged_from") or old.get("date"))
 
 
+def chart_fnopt_vs_pcg(rec: dict, path) -> dict | None:
+    """FNOpt over N against PCG with the normal directions (``pcg-n``, no FNO) over its N.
+
+    Two panels, e_CD x 1e3 and e_3D against the optimiser's own CPU ms per frame (both timed
+    alike: under ``torch.inference_mode``, one thread); the title gives FNOpt's speed-up at
+    equal e_3D (:func:`equal_error_speedup`; below 1: PCG reaches FNOpt's error in less time).
+    Writes ``path`` (PNG) and returns those speed-ups, or ``None`` without both rows.
+    """
+    rows = {name: sorted((r for r in rec["runs"] if r["optimizer"] == name and "e_3d" in r),
+                         key=lambda r: r["iters"]) for name in ("fnopt", "pcg-n")}
+    if not all(rows.values()):
+        return None
+    sp = equal_error_speedup(rows["fnopt"], rows["pcg-n"])
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), dpi=100)
+    for ax, (key, label) in zip(axes, (("e_cd", "mean e_CD x 1e3"), ("e_3d", "mean e_3D"))):
+        for name, lab in (("fnopt", "FNOpt"), ("pcg-n", "PCG + normal directions, no FNO")):
+            rs = rows[name]
+            ax.plot([r["step_cpu_ms"] for r in rs], [r[key] for r in rs], marker="o", label=lab)
+            for r in rs:
+                ax.annotate(str(r["iters"]), (r["step_cpu_ms"], r[key]), fontsize=6,
+                            xytext=(3, 3), textcoords="offset points")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("optimiser CPU ms per frame (1 thread, inference mode, shared machine)")
+        ax.set_ylabel(f"{label} vs converged reference")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    eq = ", ".join(f"N{q['iters']} {q['speedup']:.2f}x" for q in sp if q["bound"] == "=")
+    fig.suptitle(f"{rec['res']}x{rec['res']}, corners, {rec['motion']}, {rec['frames']} frames; "
+                 f"FNOpt's speed-up over PCG-normal at equal e_3D: {eq or 'none bracketed'}",
+                 fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return {"metric": "e_3d", "cost": "step_cpu_ms", "speedup": sp}
+
+
 def part_lbfgs(args, net) -> dict:
     """L-BFGS variants over their iteration counts against FNOpt N = 10 (equal error).
 

@@ -9,6 +9,8 @@ mass metric of :class:`draping.fnopt.step_problem.StepProblem`.
 
 from __future__ import annotations
 
+import functools
+import inspect
 import warnings
 
 import torch
@@ -19,7 +21,7 @@ from .preconditioners import (
     normal_directions,
     normal_preconditioner,
 )
-from .step_problem import StepProblem
+from .step_problem import StepProblem, autograd_free_call
 
 __all__ = ["solve_gd", "solve_pgd", "solve_pcg", "solve_adam", "solve_lbfgs",
            "solve_lbfgs_wolfe", "solve_reference", "CLASSICAL", "REFERENCE_TOL"]
@@ -33,6 +35,34 @@ __all__ = ["solve_gd", "solve_pgd", "solve_pcg", "solve_adam", "solve_lbfgs",
 REFERENCE_TOL = 5e-5
 
 
+def _autograd_free(gradient_option: bool):
+    """Decorator: the solver runs by :func:`autograd_free_call`.
+
+    So under ``torch.inference_mode`` where its problem needs no autograd, bit for bit the same
+    answer. ``gradient_option``: the solver has a ``fused_grad`` argument and needs autograd
+    unless it is true (false: its gradients come from autograd); else it uses only the
+    problem's own gradient and Hessian products. Tensors the solver leaves in an ``info`` dict
+    are returned as normal tensors too.
+    """
+
+    def wrap(fn):
+        sig = inspect.signature(fn)
+
+        @functools.wraps(fn)
+        def run(p, *args, **kw):
+            bound = sig.bind(p, *args, **kw)
+            enabled = bound.arguments.get("fused_grad", False) if gradient_option else True
+            out = autograd_free_call(p, fn, p, *args, enabled=enabled, **kw)
+            info = bound.arguments.get("info")
+            if info is not None:
+                info.update({k: v.clone() for k, v in info.items()
+                             if isinstance(v, torch.Tensor) and v.is_inference()})
+            return out
+        return run
+    return wrap
+
+
+@_autograd_free(gradient_option=True)
 def solve_gd(p: StepProblem, iters: int, lr: float | None = 0.5, a0=None,
              fused_grad: bool = False) -> torch.Tensor:
     """Gradient descent in the mass metric: ``a -= lr * r`` (``lr`` dimensionless).
@@ -51,6 +81,7 @@ def solve_gd(p: StepProblem, iters: int, lr: float | None = 0.5, a0=None,
     return p.compose(a)
 
 
+@_autograd_free(gradient_option=False)
 def solve_pgd(p: StepProblem, iters: int, k_eff: float = 1.0, a0=None) -> torch.Tensor:
     """Steepest descent in the metric of :func:`laplace_preconditioner`, exact quadratic step."""
     pre = laplace_preconditioner(p, k_eff)
@@ -62,6 +93,7 @@ def solve_pgd(p: StepProblem, iters: int, k_eff: float = 1.0, a0=None) -> torch.
     return p.compose(a)
 
 
+@_autograd_free(gradient_option=False)
 def solve_pcg(p: StepProblem, iters: int, k_eff: float = 1.0, a0=None,
               normal: bool = False, split: int = 0) -> torch.Tensor:
     """Preconditioned descent with memory (FNOpt's subspace step without the FNO).
@@ -85,6 +117,7 @@ def solve_pcg(p: StepProblem, iters: int, k_eff: float = 1.0, a0=None,
     return p.compose(a)
 
 
+@_autograd_free(gradient_option=True)
 def solve_adam(p: StepProblem, iters: int, lr: float = 1.0, betas=(0.9, 0.999),
                eps: float = 1e-8, a0=None, fused_grad: bool = False) -> torch.Tensor:
     """Adam on the residual ``r`` (``lr`` in m/s^2 per iteration).
@@ -126,6 +159,7 @@ def _two_loop(g, s_hist, y_hist, h0=None):
     return q
 
 
+@_autograd_free(gradient_option=True)
 def solve_lbfgs(p: StepProblem, iters: int, history: int = 5, step: float = 1.0,
                 a0=None, line_search: bool = False, tol: float = 0.0,
                 info: dict | None = None, precondition: float = 0.0,

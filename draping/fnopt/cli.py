@@ -120,7 +120,8 @@ def register_simulate(sub: argparse._SubParsersAction) -> None:
                    help="factor on the trajectory's base speed (default 1.0)")
     p.add_argument("--frames", type=int, default=120, help="frames at 60 fps (default 120)")
     p.add_argument("--optimizer", choices=list(OPTIMIZERS), default="fnopt",
-                   help="inner optimiser of each backward-Euler step; reference: solved to "
+                   help="inner optimiser of each backward-Euler step; pcg: FNOpt's step "
+                   "without the FNO (PCG with the normal directions); reference: solved to "
                    "convergence (default fnopt: the shipped learned optimiser)")
     p.add_argument("--iters", type=int, default=10,
                    help="inner iterations per frame (default 10)")

@@ -31,6 +31,7 @@ from .solvers import (
     normal_preconditioner,
     subspace_solve,
 )
+from .step_problem import autograd_free_call
 
 __all__ = ["FNOConfig", "SpectralConv2d", "FNO", "features", "constant_features",
            "fno_correction", "fno_direction", "fno_inputs",
@@ -597,14 +598,11 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
                          f"memory dict (got {type(memory).__name__})")
     args = (model, p, iters, a0, step, guard, info, coarse_res, stiffness_res, recycle, memory,
             fno_every)
-    if not p.autograd_free():
-        return _solve(*args)
-    with torch.inference_mode():      # no autograd bookkeeping per operation: the same
-        out = _solve(*args)           # arithmetic, 5-12 % less time per solve
-    if recycle:                       # normal tensors for the caller (in-place use allowed)
+    out = autograd_free_call(p, _solve, *args)   # no autograd bookkeeping where none is needed
+    if recycle and p.autograd_free():            # normal tensors for the caller (in-place use)
         memory["basis"] = [w.clone() for w in memory["basis"]]
         memory["x_next"] = memory["x_next"].clone()
-    return out.clone()
+    return out
 
 
 def _solve(model: FNO, p: StepProblem, iters: int, a0, step: str, guard: bool, info,

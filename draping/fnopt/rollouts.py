@@ -11,7 +11,7 @@ import torch
 
 from . import cloth
 from .handles import DT, trajectory
-from .step_problem import make_problem
+from .step_problem import autograd_free_call, make_problem
 
 __all__ = ["Rollout", "rollout"]
 
@@ -42,7 +42,10 @@ def rollout(sheet: cloth.Sheet, material: cloth.Material, layout, motion: str, f
     solver starts from zero, Algorithm 2). ``repulsion``: weight (J) of eq. (28) with
     ``delta`` the grid spacing (0: off). ``progress``: called after each frame. ``perturb``:
     standard deviation (m) of Gaussian noise (seed 0) added to the free vertices' initial
-    positions, for sensitivity studies (0: off).
+    positions, for sensitivity studies (0: off). The float64 ``L_cloth`` recorded per frame is
+    evaluated under ``torch.inference_mode`` where its problem allows
+    (:func:`~draping.fnopt.step_problem.autograd_free_call`); ``step`` decides for itself (the
+    solvers of :mod:`~draping.fnopt.classical` and ``solve_fnopt`` do so by the same rule).
 
     Raises
     ------
@@ -80,7 +83,7 @@ def rollout(sheet: cloth.Sheet, material: cloth.Material, layout, motion: str, f
         with torch.no_grad():
             p64 = make_problem(x.double(), v.double(), idx, target.double(), sheet.hx,
                                sheet.hy, material.tensors(1, torch.float64), dt)
-            losses.append(float(p64.loss(a.double())[0]))
+            losses.append(float(autograd_free_call(p64, p64.loss, a.double())[0]))
         x, v = cloth.advance(a, x, v, dt, idx, target)
         if not bool(torch.isfinite(x).all()) or not math.isfinite(losses[-1]):
             raise ValueError(f"rollout diverged at frame {f} (non-finite state)")

@@ -30,7 +30,7 @@ MOTIONS = ("x", "y", "z", "xy", "xyz", "x-rev", "y-rev", "z-rev", "xy-rev", "xyz
            "rot-a", "rot-b", "rot-a-rev", "rot-b-rev", "still")
 
 #: Optimisers of ``polygeo simulate``.
-OPTIMIZERS = ("fnopt", "gd", "adam", "lbfgs", "reference")
+OPTIMIZERS = ("fnopt", "gd", "adam", "lbfgs", "pcg", "reference")
 
 #: Handle distributions of the training pool (see :func:`draping.fnopt.train.random_handles`).
 HANDLE_DISTRIBUTIONS = ("random", "corners-interior", "folding")

@@ -18,20 +18,26 @@ import torch
 
 from ..metrics import relative_vertex_error
 from . import cloth
-from .classical import CLASSICAL, REFERENCE_TOL, solve_reference
+from .classical import CLASSICAL, REFERENCE_TOL, solve_pcg, solve_reference
 from .coarse import check_grid_option
 from .handles import DT, check_motion
 from .rollouts import Rollout, rollout
 from .settings import OPTIMIZERS
 
-__all__ = ["SimSettings", "OPTIMIZERS", "DEFAULT_LR", "step_function", "run", "e_cd",
-           "frame_metrics", "reference_rollout", "write_outputs"]
+__all__ = ["SimSettings", "OPTIMIZERS", "DEFAULT_LR", "PCG_NORMAL_SPLIT", "step_function", "run",
+           "e_cd", "frame_metrics", "reference_rollout", "write_outputs"]
 
 #: Default step sizes (mass metric); ``benchmarks/bm_fnopt.py`` reports their errors. GD:
 #: ``None``, per sheet the stable step of :func:`~draping.fnopt.preconditioners.curvature_bound`
 #: (the previous fixed 2e-3 diverged from 24x24 on, within 1-3 frames: the mass-metric curvature
 #: grows as ``1 / h^2``, its largest eigenvalue 1.6e4 at 64x64 with the default material).
 DEFAULT_LR = {"gd": None, "adam": 0.1, "lbfgs": 1.0}
+
+#: ``optimizer="pcg"``: :func:`~draping.fnopt.classical.solve_pcg` with the out-of-plane
+#: directions cut at this many DCT modes (``normal=True, split=PCG_NORMAL_SPLIT``), the shipped
+#: weights' ``normal_split``: FNOpt's classical directions without the FNO, the ``pcg-n`` rows of
+#: ``benchmarks/bm_fnopt.py`` and session 14's equal-cost control.
+PCG_NORMAL_SPLIT = 4
 
 
 @dataclass
@@ -44,6 +50,8 @@ class SimSettings:
     ``recycle`` updates to the next frame's solve (``solve_fnopt(recycle=...)``).
     ``fno_every`` (FNOpt only; 1, the default: every iteration): the FNO's proposal on every
     ``fno_every``-th iteration only, the classical step between (``solve_fnopt(fno_every=...)``).
+    ``optimizer="pcg"``: FNOpt's step without the FNO, ``iters`` iterations of PCG with the
+    normal directions (:data:`PCG_NORMAL_SPLIT`); ``lr`` is not used (exact subspace steps).
     """
 
     res: tuple = (64, 64)
@@ -98,7 +106,10 @@ def step_function(settings: SimSettings, model=None):
     GD, Adam and L-BFGS take the fused closed-form gradient (``fused_grad``: autograd's values
     up to rounding, 2.7x cheaper L-BFGS iterations at 64x64; autograd where it does not apply,
     e.g. with repulsion), as FNOpt's inference and ``benchmarks/bm_fnopt.py``'s classical rows
-    do, so that ``polygeo simulate`` and the benchmark time the same solver.
+    do, so that ``polygeo simulate`` and the benchmark time the same solver. ``pcg``:
+    ``solve_pcg(normal=True, split=PCG_NORMAL_SPLIT)``. Every solver but the reference runs under
+    ``torch.inference_mode`` where the step problem needs no autograd
+    (:func:`~draping.fnopt.step_problem.autograd_free_call`).
     """
     name, n = settings.optimizer, settings.iters
     if name == "reference":
@@ -110,6 +121,8 @@ def step_function(settings: SimSettings, model=None):
         k, r, e, memory = settings.fno_coarse, settings.recycle, settings.fno_every, {}
         return lambda p, a0: solve_fnopt(net, p, n, coarse_res=k, recycle=r, memory=memory,
                                          fno_every=e)
+    if name == "pcg":
+        return lambda p, a0: solve_pcg(p, n, normal=True, split=PCG_NORMAL_SPLIT)
     lr = settings.lr if settings.lr is not None else DEFAULT_LR[name]
     if name == "lbfgs":
         return lambda p, a0: CLASSICAL[name](p, n, step=lr, fused_grad=True)

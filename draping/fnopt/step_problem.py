@@ -20,7 +20,7 @@ import torch
 from . import cloth
 from .handles import DT
 
-__all__ = ["StepProblem", "make_problem", "subspace_solve", "free_rms"]
+__all__ = ["StepProblem", "make_problem", "subspace_solve", "free_rms", "autograd_free_call"]
 
 
 @dataclass
@@ -364,3 +364,25 @@ def make_problem(x_prev, v_prev, idx, target, hx, hy, material: dict, dt: float 
     a_fixed[:, idx[:, 0], idx[:, 1]] = cloth.handle_accel(x_prev, v_prev, idx, target, dt)
     return StepProblem(x_prev, v_prev, hx, hy, mat, dt, free, a_fixed, mass, extra)
 
+
+
+def autograd_free_call(p: StepProblem, fn: Callable, *args, enabled: bool = True, **kw):
+    """``fn(*args, **kw)`` under ``torch.inference_mode`` where ``p`` needs no autograd.
+
+    The one home of that rule (:func:`draping.fnopt.model.solve_fnopt`, the classical solvers of
+    :mod:`draping.fnopt.classical`, the rollout loop): where :meth:`StepProblem.autograd_free`
+    holds and ``enabled`` (``False``: the caller's own work needs autograd, e.g. a solver given
+    autograd's gradient) the same operations run without autograd's per-operation bookkeeping,
+    the same arithmetic bit for bit (5-13 % less time per solve, session 14); else ``fn`` runs
+    as it is. ``p`` must have been built outside that mode (its cached masks track versions).
+
+    Returns
+    -------
+    ``fn``'s result; a tensor result made in that mode is returned as a normal tensor (a clone),
+    so callers may use it in place or in autograd; other results (floats, tuples) as they are.
+    """
+    if not (enabled and p.autograd_free()):
+        return fn(*args, **kw)
+    with torch.inference_mode():
+        out = fn(*args, **kw)
+    return out.clone() if isinstance(out, torch.Tensor) else out

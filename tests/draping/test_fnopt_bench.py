@@ -234,3 +234,19 @@ def test_merge_iters_keeps_the_rows_not_run_again(bm):
         ("adam", 10, 0.3), ("fnopt", 10, 0.1), ("gd", 10, 1.0), ("gd", 100, 0.5)]
     assert out["merged_from"] == "OLD" and out["date"] == "NEW"
     assert bm.merge_iters(dict(old, frames=30), rec) is rec
+
+
+def test_fnopt_vs_pcg_chart_gives_the_equal_error_speedups(bm, tmp_path):
+    """The iters part's FNOpt-against-PCG-normal chart: a PNG and FNOpt's speed-ups at equal
+    e_3D (here PCG reaches each FNOpt error at half FNOpt's cost: 0.5x); nothing without
+    ``pcg-n`` rows."""
+    fn = [{"optimizer": "fnopt", "iters": n, "e_cd": 1.0 / n, "e_3d": 1.0 / n,
+           "step_cpu_ms": 4.0 * n} for n in (3, 5, 8)]
+    pc = [{"optimizer": "pcg-n", "iters": n, "e_cd": 1.0 / n, "e_3d": 1.0 / n,
+           "step_cpu_ms": 2.0 * n} for n in (2, 4, 6, 10)]
+    rec = {"res": 16, "motion": "xy", "frames": 3, "runs": fn + pc}
+    out = bm.chart_fnopt_vs_pcg(rec, tmp_path / "c.png")
+    assert (tmp_path / "c.png").stat().st_size > 1000
+    got = {q["iters"]: q["speedup"] for q in out["speedup"] if q["bound"] == "="}
+    assert set(got) == {3, 5, 8} and all(abs(v - 0.5) < 1e-9 for v in got.values())
+    assert bm.chart_fnopt_vs_pcg({**rec, "runs": fn}, tmp_path / "d.png") is None

@@ -355,28 +355,3 @@ def test_an_inference_solve_leaves_caches_that_training_can_use():
     a, _ = tbptt.unrolled_solve(net, p, 2)
     a.square().sum().backward()
     assert all(q.grad is not None for q in net.spectral.parameters())
-
-
-def test_benchmark_times_the_fused_rows_in_inference_mode_like_fnopt(monkeypatch):
-    """``bm_fnopt._step``: the rows on the fused gradient (and PCG / PGD) run under
-    ``torch.inference_mode`` as ``solve_fnopt`` does, bit for bit the same result returned as a
-    normal tensor; the autograd and strong-Wolfe rows do not (they need autograd)."""
-    bm = _bm()
-    p = _problem()
-    got = bm._step("lbfgs", 5)(p, None)
-    assert torch.equal(got, bm._row("lbfgs", 5)(p, None)) and not got.is_inference()
-    seen = []
-
-    def spy(name):
-        def f(p, n, **kw):
-            seen.append((name, torch.is_inference_mode_enabled()))
-            return p.x_prev
-        return f
-
-    for name in ("solve_lbfgs", "solve_lbfgs_wolfe", "solve_pcg", "solve_pgd"):
-        monkeypatch.setattr(solvers, name, spy(name))
-    monkeypatch.setitem(solvers.CLASSICAL, "gd", spy("solve_gd"))
-    for name in ("lbfgs", "lbfgs-autograd", "gd", "pcg", "pgd", "lbfgs-wolfe"):
-        bm._step(name, 3)(p, None)
-    assert seen == [("solve_lbfgs", True), ("solve_lbfgs", False), ("solve_gd", True),
-                    ("solve_pcg", True), ("solve_pgd", True), ("solve_lbfgs_wolfe", False)]
