@@ -135,7 +135,8 @@ def _settings(args):
             mk[k] = getattr(args, k)
     tk = {"seed": args.seed, "init": args.init}
     for k in ("random_motions", "lr", "lr_epochs", "burn_in", "shapes", "grad_clip",
-              "collision_stiffness", "collision_eps", "k_ext_rings", "replay", "pinch_inext", "pinch_push"):
+              "collision_stiffness", "collision_eps", "k_ext_rings", "replay", "pinch_inext",
+              "pinch_push"):
         if getattr(args, k) is not None:
             tk[k] = getattr(args, k)
     if args.batch is not None:
@@ -216,8 +217,8 @@ def run_train(args: argparse.Namespace) -> int:
     if "held_out" in record:
         m = record["held_out"]["mean"]
         ms = record["inference_cpu_ms_per_frame"]
-        print(f"held out: eps_e {m['eps_e']:.2f} %  eps_a {m['eps_a']:.2f} %  eps_c "
-              f"{m['eps_c']:.3f} %  ({ms['model']:.2f} CPU ms/frame, "
+        print(f"held out: eps_e {m['eps_e']:.3f} %  eps_a {m['eps_a']:.3f} %  eps_c "
+              f"{m['eps_c']:.4f} %  ({ms['model']:.2f} CPU ms/frame, "
               f"{ms['with_skeleton']:.2f} with the skeleton, {ms['with_body_mesh']:.2f} with "
               "the body mesh)")
     return 0

@@ -286,7 +286,8 @@ class TrainSettings:
 
         A run continued for more steps is the same run; the model's part is
         :meth:`GapsSettings.key_dict`. ``k_ext_rings`` and ``replay`` are left out when 0 and
-        ``pinch_inext`` when 1 and ``pinch_push`` when False, so the keys of runs from before they existed do not change.
+        ``pinch_inext`` when 1 and ``pinch_push`` when False, so the keys of runs from before
+        they existed do not change.
         """
         d = dataclasses.asdict(self)
         for k in ("steps", "checkpoint_every"):
