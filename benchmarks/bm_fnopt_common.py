@@ -16,6 +16,7 @@ import numpy as np
 from draping.fnopt import solvers
 from draping.fnopt.model import solve_fnopt
 from draping.fnopt.simulate import DEFAULT_LR, SimSettings, frame_metrics
+from draping.viz import plot_curves
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = Path(__file__).resolve().parent / "results"
@@ -185,19 +186,5 @@ def chart_iters(rec: dict, path: Path) -> None:
 def _loglog_chart(curves: dict, xs: dict, path: Path, xlabel: str, ylabel: str, title: str,
                   hline: float | None = None) -> None:
     """Log-log line chart of ``curves[k]`` over ``xs[k]`` (markers, legend), PNG at ``path``."""
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
-    for k, y in curves.items():
-        ax.plot(xs[k], y, marker="o", label=k)
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    if hline is not None:
-        ax.axhline(hline, color="gray", ls="--", lw=0.8)
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
-    ax.set_title(title)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    plot_curves(curves, path, xlabel=xlabel, ylabel=ylabel, title=title, logx=True, logy=True,
+                x=xs, markers=True, hline=hline)

@@ -222,15 +222,24 @@ def write_strip(images: Sequence, path: str | os.PathLike) -> Path:
 
 def plot_curves(curves: dict, path: str | os.PathLike, *, xlabel: str = "", ylabel: str = "",
                 title: str = "", logy: bool = False, x: dict | None = None,
-                markers: bool = False) -> Path:
-    """Line chart of ``curves`` ``{label: values}`` (``x[label]`` optional abscissae)."""
+                markers: bool = False, logx: bool = False,
+                hline: float | None = None) -> Path:
+    """Line chart of ``curves`` ``{label: values}`` (``x[label]`` optional abscissae).
+
+    ``logx`` / ``logy`` put an axis on a log scale; ``hline`` draws a dashed horizontal
+    reference line (a target or a floor) at that ordinate.
+    """
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
     for name, y in curves.items():
         xs = x[name] if x is not None and name in x else np.arange(len(y))
         ax.plot(xs, y, label=str(name), marker="o" if markers else None, ms=3)
+    if logx:
+        ax.set_xscale("log")
     if logy:
         ax.set_yscale("log")
+    if hline is not None:
+        ax.axhline(hline, color="gray", ls="--", lw=0.8)
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.set_title(title)
