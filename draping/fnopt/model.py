@@ -22,6 +22,8 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from polygeo.checks import check_int
+
 from . import coarse
 from .cloth import positions_from_accel
 from .solvers import (
@@ -477,10 +479,7 @@ def check_fno_every(fno_every) -> None:
     ValueError
         If it is below 1.
     """
-    if isinstance(fno_every, bool) or not isinstance(fno_every, int):
-        raise TypeError(f"fno_every: expected an int, got {type(fno_every).__name__}")
-    if fno_every < 1:
-        raise ValueError(f"fno_every: expected an int >= 1, got {fno_every}")
+    check_int(fno_every, "fno_every", low=1)
 
 
 def check_recycle(recycle) -> None:
@@ -493,10 +492,7 @@ def check_recycle(recycle) -> None:
     ValueError
         If it is out of range.
     """
-    if isinstance(recycle, bool) or not isinstance(recycle, int):
-        raise TypeError(f"recycle: expected an int, got {type(recycle).__name__}")
-    if not 0 <= recycle <= RECYCLE_MAX:
-        raise ValueError(f"recycle: expected an int in [0, {RECYCLE_MAX}], got {recycle}")
+    check_int(recycle, "recycle", low=0, high=RECYCLE_MAX)
 
 
 def recycled_basis(updates: list, free3: torch.Tensor) -> list:
