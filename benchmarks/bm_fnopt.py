@@ -10,6 +10,12 @@ cached in benchmarks/results/fnopt_refs/):
 - ``ratio``: from the ``iters`` JSONs of ``--ratio-res``: the speed-up of FNOpt over each
   L-BFGS variant at equal error along the whole FNOpt curve (N = 3 ... 20), the L-BFGS time
   interpolated log-log on its Pareto front (:func:`equal_error_speedup`), charted;
+- ``hard``: FNOpt-N against PCG with the normal directions over N (``pcg-n``) on the three
+  ``general`` cases where FNOpt-10 stays far from the floor (:data:`HARD_CASES`: diagonal,
+  mid-edges, random-2), e_CD and e_3D against ms per frame, charted;
+- ``--starts K`` (``iters``, ``hard``): every row the median of K rollouts from the first K
+  starts of :data:`STARTS` (free vertices moved by 0, 10 nm, ..., 10 um; default 1, the
+  unperturbed start alone), each start's figures kept in the row;
 - ``reference``: the convergence of the reference over its tolerance;
 - ``super``: FNOpt run at 64 against the 32 rollout upsampled bilinearly to 64 (Table 6.4);
 - ``general``: speed factors 1.2 / 1.5 / 2, the five handle layouts and seeded random pin sets
@@ -80,10 +86,12 @@ from bm_fnopt_common import (  # noqa: E402,F401
     RANDOM_LAYOUTS,
     REFS,
     ROOT,
+    STARTS,
     THESIS_LBFGS,
     _fno_options,
     _loglog_chart,
     _measure,
+    _measure_starts,
     _plt,
     _rollout,
     _row,
@@ -91,10 +99,14 @@ from bm_fnopt_common import (  # noqa: E402,F401
     chart_iters,
 )
 from bm_fnopt_speedup import (  # noqa: E402,F401
+    HARD_CASES,
+    HARD_PLAN,
     chart_fnopt_vs_pcg,
+    chart_hard,
     equal_error_speedup,
     merge_iters,
     pareto_front,
+    part_hard,
     part_iters,
     part_lbfgs,
     part_ratio,
@@ -200,7 +212,8 @@ def main() -> None:
     """The command line: run one ``--part`` and write its JSON (and chart) to ``results/``."""
     ap = argparse.ArgumentParser()
     ap.add_argument("--part", choices=("iters", "super", "general", "sweep", "lbfgs",
-                                       "reference", "stability", "ratio", "validation"),
+                                       "reference", "stability", "ratio", "validation",
+                                       "hard"),
                     default="iters")
     ap.add_argument("--res", type=int, default=32)
     ap.add_argument("--frames", type=int, default=60)
@@ -208,8 +221,10 @@ def main() -> None:
     ap.add_argument("--speed", type=float, default=1.0)
     ap.add_argument("--every", type=int, default=3, help="metric frame stride")
     ap.add_argument("--only", default="", help="comma-separated optimisers (iters part)")
-    ap.add_argument("--counts", default="", help="iters part: optimiser:iterations pairs, "
-                    "comma-separated, replacing the plan")
+    ap.add_argument("--counts", default="", help="iters / hard parts: optimiser:iterations "
+                    "pairs, comma-separated, replacing the plan")
+    ap.add_argument("--starts", type=int, default=1, help="iters / hard parts: each row the "
+                    "median of this many starts (STARTS; 1: the unperturbed start only)")
     ap.add_argument("--ratio-res", default="32,64", help="ratio part: resolutions whose iters "
                     "JSON is read")
     ap.add_argument("--weights", default=None)
@@ -275,7 +290,7 @@ def main() -> None:
     rec.update({"iters": part_iters, "super": part_super, "general": part_general,
                 "lbfgs": part_lbfgs, "reference": part_reference,
                 "stability": part_stability, "ratio": part_ratio,
-                "validation": part_validation}[args.part](args, net))
+                "validation": part_validation, "hard": part_hard}[args.part](args, net))
     rec.update(machine=platform.processor() or platform.machine(), python=platform.python_version(),
                date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                load_average=os.getloadavg())
@@ -306,6 +321,8 @@ def main() -> None:
                       hline=1e-3)
     elif args.part == "general":
         chart_general(rec, OUT / f"bm_fnopt_{tag}.png")
+    elif args.part == "hard":
+        chart_hard(rec, OUT / f"bm_fnopt_{tag}.png")
 
 if __name__ == "__main__":
     main()

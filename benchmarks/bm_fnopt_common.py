@@ -167,6 +167,48 @@ def _measure(s: SimSettings, step, ref, every: int, perturb: float = 0.0, **kw) 
             "step_cpu_ms": float(np.mean(ro.cpu_ms)), "step_wall_ms": float(np.mean(ro.ms))}
 
 
+#: Initial perturbations (m) of the free vertices for ``--starts K``: the first ``K`` of these
+#: (0: the unperturbed start). A 10-iteration solve amplifies float32 rounding, so one rollout's
+#: error is one sample of a spread (session 14: e_3D over these five starts 0.26-0.61e-3 at
+#: 32x32 for FNOpt-10); the median of five is the figure the README quotes.
+STARTS = (0.0, 1e-8, 1e-7, 1e-6, 1e-5)
+
+#: The per-start fields of a ``--starts`` row, and those whose median the row reports.
+START_FIELDS = ("e_cd", "e_3d", "step_cpu_ms")
+MEDIAN_FIELDS = ("e_cd", "e_3d", "e_cd_last", "L_cloth", "cpu_ms_per_frame", "step_cpu_ms",
+                 "step_wall_ms")
+
+
+def _measure_starts(s: SimSettings, make_step, ref, every: int, starts: int = 1) -> dict:
+    """:func:`_measure` over the first ``starts`` of :data:`STARTS`, a fresh step each.
+
+    ``make_step()`` returns a new ``(problem, a0) -> a`` step (an FNOpt row's recycled memory
+    must not cross starts). ``starts = 1``: :func:`_measure` of the unperturbed start, the row as
+    before. Else each field of :data:`MEDIAN_FIELDS` is the median over the starts (error and
+    cost medians taken separately), ``starts`` lists each start's ``perturb_m`` and
+    :data:`START_FIELDS`, and a row with a diverged start reports ``diverged`` (how many, the
+    first message) instead of medians.
+
+    Raises
+    ------
+    ValueError
+        If ``starts`` is not in 1..len(STARTS).
+    """
+    if not 1 <= starts <= len(STARTS):
+        raise ValueError(f"starts: expected 1..{len(STARTS)}, got {starts}")
+    if starts == 1:
+        return _measure(s, make_step(), ref, every)
+    rows = [dict(_measure(s, make_step(), ref, every, pert), perturb_m=pert)
+            for pert in STARTS[:starts]]
+    bad = [r for r in rows if "diverged" in r]
+    per = [{k: r.get(k) for k in ("perturb_m", *START_FIELDS)} for r in rows]
+    if bad:
+        return {"diverged": f"{len(bad)} of {starts} starts: {bad[0]['diverged']}",
+                "starts": per}
+    out = {k: float(np.median([r[k] for r in rows])) for k in MEDIAN_FIELDS}
+    return dict(out, statistic=f"median of {starts} starts", starts=per)
+
+
 def chart_iters(rec: dict, path: Path) -> None:
     curves, xs = {}, {}
     names = sorted({r.get("variant", r["optimizer"]) for r in rec["runs"]})

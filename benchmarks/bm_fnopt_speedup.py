@@ -16,9 +16,11 @@ from bm_fnopt_common import (
     LBFGS_VARIANTS,
     OUT,
     PRECONDITIONED,
+    RANDOM_LAYOUTS,
     REFS,
     THESIS_LBFGS,
     _measure,
+    _measure_starts,
     _plt,
     _step,
 )
@@ -34,7 +36,7 @@ def part_iters(args, net) -> dict:
     t0 = time.process_time()
     ref = reference_rollout(s0, REFS)
     rec = {"res": res, "motion": args.motion, "frames": args.frames, "speed": args.speed,
-           "reference_cpu_s": time.process_time() - t0,
+           "starts": args.starts, "reference_cpu_s": time.process_time() - t0,
            "reference_tol_m_s2": solvers.REFERENCE_TOL, "runs": []}
     plan = [("fnopt", n) for n in (3, 5, 8, 10, 15, 20)] + \
         [("pcg", n) for n in (5, 10, 20)] + \
@@ -53,7 +55,8 @@ def part_iters(args, net) -> dict:
     for name, n in plan:
         if name.startswith("fnopt") and net is None:
             continue
-        r = _measure(s0, _step(name, n, net), ref, args.every)
+        r = _measure_starts(s0, lambda name=name, n=n: _step(name, n, net), ref, args.every,
+                            args.starts)
         r.update(optimizer=name, iters=n)
         rec["runs"].append(r)
         print(json.dumps(r), flush=True)
@@ -64,11 +67,12 @@ def merge_iters(old: dict, rec: dict) -> dict:
     """``rec`` (an ``iters`` record) with the rows of ``old`` it did not run again.
 
     Rows are keyed by (optimizer, iterations), sorted by them; ``old`` counts only when its
-    frames, motion and speed are ``rec``'s (else ``rec`` is returned unchanged);
+    frames, motion, speed and number of starts (``--starts``; 1 when absent) are ``rec``'s
+    (else ``rec`` is returned unchanged: single-start rows never mix with medians of several);
     ``merged_from`` records ``old``'s date (the kept rows' own run).
     """
-    if (old.get("frames"), old.get("motion"), old.get("speed")) != (
-            rec["frames"], rec["motion"], rec["speed"]):
+    if (old.get("frames"), old.get("motion"), old.get("speed"), old.get("starts", 1)) != (
+            rec["frames"], rec["motion"], rec["speed"], rec.get("starts", 1)):
         return rec
     key = {(r["optimizer"], r["iters"]) for r in rec["runs"]}
     runs = [r for r in old["runs"] if (r["optimizer"], r["iters"]) not in key] + rec["runs"]
@@ -284,3 +288,91 @@ def part_ratio(args, net) -> dict:
     fig.savefig(OUT / "bm_fnopt_ratio.png")
     plt.close(fig)
     return rec
+
+
+#: The ``hard`` part's cases: the three 64x64 cases of the ``general`` part where FNOpt-10 stays
+#: far above the physical floor (diagonal, mid-edges, random-2; session 14's "trio"), as
+#: ``(layout, motion, speed)`` of :func:`bm_fnopt_cases.general_cases`.
+HARD_CASES = (("diagonal", "xy", 1.0), ("mid-edges", "xy", 1.0), ("random-2", "xy", 1.2))
+
+#: The ``hard`` part's default rows: FNOpt and PCG with the normal directions over N.
+HARD_PLAN = "fnopt:3,fnopt:5,fnopt:8,fnopt:10,fnopt:15,fnopt:20," \
+    "pcg-n:3,pcg-n:5,pcg-n:8,pcg-n:10,pcg-n:15,pcg-n:20,pcg-n:24,pcg-n:30,pcg-n:40"
+
+
+def part_hard(args, net) -> dict:
+    """FNOpt-N against PCG-normal-N (``pcg-n``) on :data:`HARD_CASES` at ``--res``.
+
+    Every row the median of ``--starts`` starts (:func:`_measure_starts`); ``--counts``
+    replaces :data:`HARD_PLAN`. ``equal_error``: per case, FNOpt's speed-up over PCG-normal at
+    equal e_3D (:func:`equal_error_speedup`; below 1: PCG-normal gets there in less time).
+    """
+    plan = [(m, int(n)) for m, n in (q.split(":") for q in (args.counts or HARD_PLAN).split(","))]
+    rec = {"res": args.res, "frames": args.frames, "starts": args.starts,
+           "cases": [list(c) for c in HARD_CASES], "random_layouts": RANDOM_LAYOUTS, "runs": []}
+    for layout, motion, speed in HARD_CASES:
+        s = SimSettings(res=(args.res, args.res), handles=RANDOM_LAYOUTS.get(layout, layout),
+                        motion=motion, frames=args.frames, speed=speed)
+        ref = reference_rollout(s, REFS)
+        for name, n in plan:
+            if name.startswith("fnopt") and net is None:
+                continue
+            r = _measure_starts(s, lambda name=name, n=n: _step(name, n, net), ref, args.every,
+                                args.starts)
+            r.update(layout=layout, motion=motion, speed=speed, optimizer=name, iters=n)
+            rec["runs"].append(r)
+            print(json.dumps(r), flush=True)
+    rec["equal_error"] = []
+    for case, rows in _hard_rows(rec).items():
+        if rows["fnopt"] and rows["pcg-n"]:
+            rec["equal_error"].append({"case": list(case), "metric": EQUAL_ERROR_METRIC,
+                                       "speedup": equal_error_speedup(rows["fnopt"],
+                                                                      rows["pcg-n"])})
+    return rec
+
+
+def _hard_rows(rec: dict) -> dict:
+    """``{(layout, motion, speed): {"fnopt": rows, "pcg-n": rows}}``, rows sorted by N."""
+    out = {}
+    for c in rec["cases"]:
+        rs = [r for r in rec["runs"] if [r["layout"], r["motion"], r["speed"]] == list(c)
+              and "e_3d" in r]
+        out[tuple(c)] = {name: sorted((r for r in rs if r["optimizer"] == name),
+                                      key=lambda r: r["iters"]) for name in ("fnopt", "pcg-n")}
+    return out
+
+
+def chart_hard(rec: dict, path) -> None:
+    """The ``hard`` record as a PNG at ``path``: e_CD x 1e3 (top) and e_3D (bottom) against the
+    optimiser's CPU ms per frame, one column per case, FNOpt and PCG-normal over N (labelled);
+    each column's title gives FNOpt's speed-up at equal e_3D for the bracketed N."""
+    plt = _plt()
+    rows = _hard_rows(rec)
+    eq = {tuple(q["case"]): q["speedup"] for q in rec.get("equal_error", [])}
+    fig, axes = plt.subplots(2, len(rows), figsize=(4.6 * len(rows), 7.4), dpi=100,
+                             squeeze=False)
+    for col, (case, rs) in enumerate(rows.items()):
+        for row, (key, label) in enumerate((("e_cd", "e_CD x 1e3"), ("e_3d", "e_3D"))):
+            ax = axes[row][col]
+            for name, lab in (("fnopt", "FNOpt-N"), ("pcg-n", "PCG + normal directions-N")):
+                ax.plot([r["step_cpu_ms"] for r in rs[name]], [r[key] for r in rs[name]],
+                        marker="o", ms=3, label=lab)
+                for r in rs[name]:
+                    ax.annotate(str(r["iters"]), (r["step_cpu_ms"], r[key]), fontsize=6,
+                                xytext=(3, 3), textcoords="offset points")
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.xaxis.set_minor_formatter(plt.NullFormatter())
+            ax.set_xlabel("optimiser CPU ms per frame (1 thread, inference mode)")
+            ax.set_ylabel(f"{label} vs converged reference "
+                          f"(median of {rec.get('starts', 1)} starts)", fontsize=7)
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7)
+        sp = ", ".join(f"N{q['iters']} {q['speedup']:.2f}x" for q in eq.get(case, [])
+                       if q["bound"] == "=")
+        axes[0][col].set_title(f"{case[0]} {case[1]} x{case[2]}, {rec['res']}x{rec['res']}, "
+                               f"{rec['frames']} frames\nFNOpt's speed-up over PCG-normal at "
+                               f"equal e_3D: {sp or 'none bracketed'}", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
