@@ -101,6 +101,7 @@ from bm_fnopt_common import (  # noqa: E402,F401
 from bm_fnopt_speedup import (  # noqa: E402,F401
     HARD_CASES,
     HARD_PLAN,
+    _hard_rows,
     chart_fnopt_vs_pcg,
     chart_hard,
     equal_error_speedup,

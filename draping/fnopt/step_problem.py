@@ -337,13 +337,22 @@ def make_problem(x_prev, v_prev, idx, target, hx, hy, material: dict, dt: float 
     """Build the step problem of states ``(B, H, W, 3)`` with handles ``idx`` on ``target``.
 
     ``idx``: ``(K, 2)`` grid indices; ``target``: ``(B, K, 3)`` handle positions at the end of
-    the step (m). ``hx``, ``hy``: floats or ``(B,)``.
+    the step (m). ``hx``, ``hy``: floats or ``(B,)``. The problem holds normal tensors also
+    when built under ``torch.inference_mode`` or from tensors made in it (copied then): its
+    caches track tensor versions and autograd's solvers save its tensors for backward, neither
+    of which inference tensors allow.
 
     Raises
     ------
     ValueError
         On non-grid or non-finite states, or handles out of range.
     """
+    if torch.is_inference_mode_enabled() or any(
+            _is_inference(t) for t in (x_prev, v_prev, target, hx, hy, *material.values())):
+        with torch.inference_mode(False):
+            return make_problem(_normal(x_prev), _normal(v_prev), idx, _normal(target),
+                                _normal(hx), _normal(hy),
+                                {k: _normal(v) for k, v in material.items()}, dt, extra)
     b, h, w = cloth.check_grid(x_prev, "x_prev")
     cloth.check_grid(v_prev, "v_prev")
     if v_prev.shape != x_prev.shape:
@@ -363,6 +372,15 @@ def make_problem(x_prev, v_prev, idx, target, hx, hy, material: dict, dt: float 
     a_fixed = torch.zeros_like(x_prev)
     a_fixed[:, idx[:, 0], idx[:, 1]] = cloth.handle_accel(x_prev, v_prev, idx, target, dt)
     return StepProblem(x_prev, v_prev, hx, hy, mat, dt, free, a_fixed, mass, extra)
+
+
+def _is_inference(t) -> bool:
+    return isinstance(t, torch.Tensor) and t.is_inference()
+
+
+def _normal(t):
+    """``t``, or a normal-tensor copy of it when it is an inference tensor."""
+    return t.clone() if _is_inference(t) else t
 
 
 

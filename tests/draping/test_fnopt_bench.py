@@ -250,3 +250,64 @@ def test_fnopt_vs_pcg_chart_gives_the_equal_error_speedups(bm, tmp_path):
     got = {q["iters"]: q["speedup"] for q in out["speedup"] if q["bound"] == "="}
     assert set(got) == {3, 5, 8} and all(abs(v - 0.5) < 1e-9 for v in got.values())
     assert bm.chart_fnopt_vs_pcg({**rec, "runs": fn}, tmp_path / "d.png") is None
+
+
+def test_starts_rows_are_medians_over_fresh_steps(bm, monkeypatch):
+    """``--starts K``: K rollouts from the first K perturbations, a fresh step each, the row's
+    figures their medians (error and cost separately), each start kept; one start: the plain
+    row; a diverged start: no medians."""
+    seen = []
+
+    def fake(s, step, ref, every, perturb=0.0, **kw):
+        seen.append((perturb, step))
+        k = len(seen)
+        e = {1: 5.0, 2: 1.0, 3: 3.0, 4: 2.0, 5: 4.0}[k]
+        return {"e_cd": e, "e_3d": e / 10, "e_cd_last": e, "L_cloth": -e,
+                "cpu_ms_per_frame": 10.0 * (6 - k), "step_cpu_ms": 6.0 - k,
+                "step_wall_ms": 1.0}
+
+    monkeypatch.setattr(sys.modules[bm._measure_starts.__module__], "_measure", fake)
+    steps = iter(range(100))
+    out = bm._measure_starts(None, lambda: next(steps), None, 3, 5)
+    assert [p for p, _ in seen] == list(bm.STARTS) and [s for _, s in seen] == [0, 1, 2, 3, 4]
+    assert out["e_cd"] == 3.0 and out["e_3d"] == pytest.approx(0.3)
+    assert out["step_cpu_ms"] == 3.0 and out["statistic"] == "median of 5 starts"
+    assert [q["e_cd"] for q in out["starts"]] == [5.0, 1.0, 3.0, 2.0, 4.0]
+    seen.clear()
+    one = bm._measure_starts(None, lambda: "s", None, 3, 1)
+    assert seen == [(0.0, "s")] and one["e_cd"] == 5.0 and "starts" not in one
+    monkeypatch.setattr(sys.modules[bm._measure_starts.__module__], "_measure",
+                        lambda s, step, ref, every, perturb=0.0: {"diverged": "x"}
+                        if perturb else fake(s, step, ref, every))
+    bad = bm._measure_starts(None, lambda: 0, None, 3, 3)
+    assert bad["diverged"].startswith("2 of 3 starts") and "e_3d" not in bad
+    with pytest.raises(ValueError, match="starts"):
+        bm._measure_starts(None, lambda: 0, None, 3, 6)
+
+
+def test_merge_iters_never_mixes_single_start_rows_with_medians(bm):
+    old = {"frames": 60, "motion": "xy", "speed": 1.0, "runs": [{"optimizer": "gd", "iters": 1}]}
+    rec = {"frames": 60, "motion": "xy", "speed": 1.0, "starts": 5, "runs": []}
+    assert bm.merge_iters(old, rec) is rec
+    assert bm.merge_iters(dict(old, starts=5), rec)["runs"] == old["runs"]
+
+
+def test_hard_cases_are_general_cases_and_chart(bm, tmp_path):
+    """The ``hard`` part's trio are ``general`` cases; its chart is written and its equal-error
+    speed-ups are FNOpt's over PCG-normal (0.5x here: PCG at half the cost)."""
+    assert set(bm.HARD_CASES) <= set(bm.general_cases())
+    runs = []
+    for case in bm.HARD_CASES:
+        c = dict(zip(("layout", "motion", "speed"), case))
+        runs += [{**c, "optimizer": "fnopt", "iters": n, "e_cd": 1.0 / n, "e_3d": 1.0 / n,
+                  "step_cpu_ms": 4.0 * n} for n in (3, 5)]
+        runs += [{**c, "optimizer": "pcg-n", "iters": n, "e_cd": 1.0 / n, "e_3d": 1.0 / n,
+                  "step_cpu_ms": 2.0 * n} for n in (2, 4, 6)]
+    rec = {"res": 16, "frames": 3, "starts": 5, "cases": [list(c) for c in bm.HARD_CASES],
+           "runs": runs}
+    rows = bm._hard_rows(rec)
+    sp = bm.equal_error_speedup(rows[bm.HARD_CASES[0]]["fnopt"], rows[bm.HARD_CASES[0]]["pcg-n"])
+    assert [q["speedup"] for q in sp] == pytest.approx([0.5, 0.5])
+    rec["equal_error"] = [{"case": list(c), "speedup": sp} for c in bm.HARD_CASES]
+    bm.chart_hard(rec, tmp_path / "h.png")
+    assert (tmp_path / "h.png").stat().st_size > 1000
