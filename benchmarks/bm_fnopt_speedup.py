@@ -96,19 +96,7 @@ def chart_fnopt_vs_pcg(rec: dict, path) -> dict | None:
     plt = _plt()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), dpi=100)
     for ax, (key, label) in zip(axes, (("e_cd", "mean e_CD x 1e3"), ("e_3d", "mean e_3D"))):
-        for name, lab in (("fnopt", "FNOpt"), ("pcg-n", "PCG + normal directions, no FNO")):
-            rs = rows[name]
-            ax.plot([r["step_cpu_ms"] for r in rs], [r[key] for r in rs], marker="o", label=lab)
-            for r in rs:
-                ax.annotate(str(r["iters"]), (r["step_cpu_ms"], r[key]), fontsize=6,
-                            xytext=(3, 3), textcoords="offset points")
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        ax.xaxis.set_minor_formatter(plt.NullFormatter())
-        ax.set_xlabel("optimiser CPU ms per frame (1 thread, inference mode)")
-        ax.set_ylabel(f"{label} vs converged reference")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
+        _fnopt_pcg_panel(ax, plt, rows, key, f"{label} vs converged reference")
     eq = ", ".join(f"N{q['iters']} {q['speedup']:.2f}x" for q in sp if q["bound"] == "=")
     fig.suptitle(f"{rec['res']}x{rec['res']}, corners, {rec['motion']}, {rec['frames']} frames; "
                  f"FNOpt's speed-up over PCG-normal at equal e_3D: {eq or 'none bracketed'}",
@@ -117,6 +105,24 @@ def chart_fnopt_vs_pcg(rec: dict, path) -> dict | None:
     fig.savefig(path)
     plt.close(fig)
     return {"metric": "e_3d", "cost": "step_cpu_ms", "speedup": sp}
+
+
+def _fnopt_pcg_panel(ax, plt, rows: dict, key: str, ylabel: str) -> None:
+    """One log-log panel: ``key`` of the ``fnopt`` and ``pcg-n`` rows (``rows[name]``, sorted
+    by N) against the optimiser's CPU ms per frame, each point labelled with its N."""
+    for name, lab in (("fnopt", "FNOpt"), ("pcg-n", "PCG + normal directions, no FNO")):
+        rs = rows[name]
+        ax.plot([r["step_cpu_ms"] for r in rs], [r[key] for r in rs], marker="o", label=lab)
+        for r in rs:
+            ax.annotate(str(r["iters"]), (r["step_cpu_ms"], r[key]), fontsize=6,
+                        xytext=(3, 3), textcoords="offset points")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.xaxis.set_minor_formatter(plt.NullFormatter())
+    ax.set_xlabel("optimiser CPU ms per frame (1 thread, inference mode)")
+    ax.set_ylabel(ylabel, fontsize=8)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
 
 
 def part_lbfgs(args, net) -> dict:
@@ -352,22 +358,9 @@ def chart_hard(rec: dict, path) -> None:
     fig, axes = plt.subplots(2, len(rows), figsize=(4.6 * len(rows), 7.4), dpi=100,
                              squeeze=False)
     for col, (case, rs) in enumerate(rows.items()):
-        for row, (key, label) in enumerate((("e_cd", "e_CD x 1e3"), ("e_3d", "e_3D"))):
-            ax = axes[row][col]
-            for name, lab in (("fnopt", "FNOpt-N"), ("pcg-n", "PCG + normal directions-N")):
-                ax.plot([r["step_cpu_ms"] for r in rs[name]], [r[key] for r in rs[name]],
-                        marker="o", ms=3, label=lab)
-                for r in rs[name]:
-                    ax.annotate(str(r["iters"]), (r["step_cpu_ms"], r[key]), fontsize=6,
-                                xytext=(3, 3), textcoords="offset points")
-            ax.set_xscale("log")
-            ax.set_yscale("log")
-            ax.xaxis.set_minor_formatter(plt.NullFormatter())
-            ax.set_xlabel("optimiser CPU ms per frame (1 thread, inference mode)")
-            ax.set_ylabel(f"{label} vs converged reference "
-                          f"(median of {rec.get('starts', 1)} starts)", fontsize=7)
-            ax.grid(alpha=0.3)
-            ax.legend(fontsize=7)
+        for row, (key, label) in enumerate((("e_cd", "mean e_CD x 1e3"), ("e_3d", "mean e_3D"))):
+            _fnopt_pcg_panel(axes[row][col], plt, rs, key, f"{label} vs converged reference "
+                             f"(median of {rec.get('starts', 1)} starts)")
         sp = ", ".join(f"N{q['iters']} {q['speedup']:.2f}x" for q in eq.get(case, [])
                        if q["bound"] == "=")
         axes[0][col].set_title(f"{case[0]} {case[1]} x{case[2]}, {rec['res']}x{rec['res']}, "
