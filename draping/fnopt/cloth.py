@@ -28,7 +28,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from .settings import LAYOUTS
 
@@ -451,25 +453,51 @@ def grid_faces(height: int, width: int) -> torch.Tensor:
     return torch.cat([torch.stack([v0, v2, v1], 1), torch.stack([v1, v2, v3], 1)], 0)
 
 
-def repulsion_pairs(x: torch.Tensor, delta: float, chunk: int = 2048) -> torch.Tensor:
-    """Non-adjacent vertex pairs ``(P, 2)`` (flat indices, ``i < j``) closer than ``delta``.
+def repulsion_pairs(x: torch.Tensor, delta: float) -> torch.Tensor:
+    """Non-adjacent vertex pairs closer than ``delta`` (the set ``A_i`` of eq. (28)).
 
-    ``x``: one sheet ``(H, W, 3)``. Grid neighbours (Chebyshev index distance <= 1) are
-    excluded, as in eq. (28). Chunked all-pairs distances (``O(HW)`` memory per chunk).
+    Parameters
+    ----------
+    x : (H, W, 3) float tensor
+        One sheet's positions (m).
+    delta : float
+        Threshold (m), > 0 and finite.
+
+    Returns
+    -------
+    (P, 2) int64 tensor
+        Flat vertex indices ``i * W + j``, ``i < j`` in each row, rows sorted
+        lexicographically; pairs with Euclidean distance ``< delta`` whose grid indices are
+        more than one apart in Chebyshev distance (grid neighbours, diagonals included, are
+        excluded). ``(0, 2)`` when there are none.
+
+    Raises
+    ------
+    ValueError
+        ``x`` not ``(H, W, 3)`` or not finite, ``delta`` not positive and finite.
+
+    Notes
+    -----
+    A k-d tree (``scipy.spatial.cKDTree.query_pairs``) finds the candidates in
+    ``O(V log V + P)``; the all-pairs distance matrix this replaced cost 0.1 / 0.6 s per frame
+    at 64x64 / 100x100.
     """
-    h, w = x.shape[0], x.shape[1]
-    p = x.detach().reshape(-1, 3)
-    rows = torch.arange(h).repeat_interleave(w)
-    cols = torch.arange(w).repeat(h)
-    out = []
-    for s in range(0, p.shape[0], chunk):
-        d = torch.cdist(p[s:s + chunk], p)
-        ii, jj = torch.nonzero(d < delta, as_tuple=True)
-        ii = ii + s
-        keep = (jj > ii) & ((rows[ii] - rows[jj]).abs().maximum(
-            (cols[ii] - cols[jj]).abs()) > 1)
-        out.append(torch.stack([ii[keep], jj[keep]], 1))
-    return torch.cat(out, 0)
+    if not isinstance(x, torch.Tensor) or x.ndim != 3 or x.shape[-1] != 3:
+        raise ValueError(f"x: expected an (H, W, 3) tensor, got {getattr(x, 'shape', type(x))}")
+    if not (isinstance(delta, (int, float)) and math.isfinite(delta) and delta > 0):
+        raise ValueError(f"delta: expected a positive finite float, got {delta!r}")
+    w = x.shape[1]
+    p = x.detach().reshape(-1, 3).cpu().to(torch.float64).numpy()
+    if not np.isfinite(p).all():
+        raise ValueError("x: expected finite positions")
+    ij = cKDTree(p).query_pairs(float(delta), output_type="ndarray")  # i < j, d <= delta
+    if ij.shape[0]:
+        d2 = ((p[ij[:, 0]] - p[ij[:, 1]]) ** 2).sum(-1)
+        i, j = ij[:, 0], ij[:, 1]
+        far = np.maximum(np.abs(i // w - j // w), np.abs(i % w - j % w)) > 1
+        ij = ij[(d2 < float(delta) ** 2) & far]
+        ij = ij[np.lexsort((ij[:, 1], ij[:, 0]))]
+    return torch.from_numpy(np.ascontiguousarray(ij, dtype=np.int64).reshape(-1, 2))
 
 
 def repulsion_energy(x: torch.Tensor, pairs: torch.Tensor, delta: float,

@@ -235,6 +235,41 @@ def test_repulsion_pushes_close_non_adjacent_vertices_apart():
     assert cloth.repulsion_pairs(far, 0.5 * sheet.hx).shape[0] == 0
 
 
+def _brute_pairs(x, delta):
+    h, w = x.shape[:2]
+    p = x.reshape(-1, 3).to(torch.float64)
+    i, j = torch.triu_indices(h * w, h * w, offset=1)
+    d = (p[i] - p[j]).norm(dim=-1)
+    far = ((i // w - j // w).abs().maximum((i % w - j % w).abs())) > 1
+    keep = (d < delta) & far
+    return torch.stack([i[keep], j[keep]], 1)
+
+
+@pytest.mark.parametrize("shape", [(7, 9), (12, 5), (1, 6)])
+def test_repulsion_pairs_equal_all_pairs_definition(shape):
+    g = torch.Generator().manual_seed(3)
+    x = 0.05 * torch.rand(*shape, 3, generator=g, dtype=torch.float64)  # crumpled: many close pairs
+    for delta in (0.005, 0.02, 0.1):
+        got = cloth.repulsion_pairs(x, delta)
+        want = _brute_pairs(x, delta)
+        assert got.dtype == torch.int64 and got.shape[1] == 2
+        assert torch.equal(got, want), (shape, delta)
+    assert cloth.repulsion_pairs(x.float(), 0.02).shape == _brute_pairs(x.float(), 0.02).shape
+
+
+def test_repulsion_pairs_rejects_bad_input():
+    x = torch.zeros(4, 4, 3)
+    with pytest.raises(ValueError, match="delta"):
+        cloth.repulsion_pairs(x, 0.0)
+    with pytest.raises(ValueError, match="delta"):
+        cloth.repulsion_pairs(x, float("nan"))
+    with pytest.raises(ValueError, match="x: expected an"):
+        cloth.repulsion_pairs(torch.zeros(16, 3), 0.1)
+    x[1, 2, 0] = float("nan")
+    with pytest.raises(ValueError, match="finite"):
+        cloth.repulsion_pairs(x, 0.1)
+
+
 def _step_problem(n=10, dtype=torch.float64):
     sheet = Sheet(n, n)
     ro = solvers.rollout(sheet, Material(), "corner-centre", "xyz", 5,
