@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING
 from polygeo.lazy import attach
 
 if TYPE_CHECKING:
+    from .average import WeightAverage
     from .data import (
         Case,
         Sequence,
@@ -74,6 +75,7 @@ if TYPE_CHECKING:
 __getattr__, __dir__ = attach(__name__, __file__)
 
 __all__ = [
+    "WeightAverage",
     "Case",
     "Sequence",
     "ShapeCase",

@@ -116,6 +116,11 @@ def register_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--replay", type=float, default=None, metavar="P",
                    help="hard-example replay: probability that a step trains again on a recent "
                    "step whose collision loss was in the top decile (default 0)")
+    p.add_argument("--average-from", type=int, default=None, metavar="STEP",
+                   help="export the uniform mean of the network weights after every step past "
+                   "STEP (the last weights go to DIR/model_last.pt); training is unchanged, so "
+                   "a run's checkpoint at or before STEP continues with --resume (default: "
+                   "off, the last weights)")
     p.add_argument("-o", "--out", required=True, metavar="DIR", help="run folder")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in DIR (same settings); without it DIR starts afresh")
@@ -136,7 +141,7 @@ def _settings(args):
     tk = {"seed": args.seed, "init": args.init}
     for k in ("random_motions", "lr", "lr_epochs", "burn_in", "shapes", "grad_clip",
               "collision_stiffness", "collision_eps", "k_ext_rings", "replay", "pinch_inext",
-              "pinch_push"):
+              "pinch_push", "average_from"):
         if getattr(args, k) is not None:
             tk[k] = getattr(args, k)
     if args.batch is not None:

@@ -248,6 +248,7 @@ class TrainSettings:
     checkpoint_every: int = 100
     replay: float = 0.0
     init: str | None = None
+    average_from: int | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.model, GapsSettings):
@@ -264,6 +265,8 @@ class TrainSettings:
         check_int(self.seed, "seed")
         check_int(self.checkpoint_every, "checkpoint_every", low=1)
         check_int(self.k_ext_rings, "k_ext_rings", low=0, high=1000)
+        if self.average_from is not None:
+            check_int(self.average_from, "average_from", low=0)
         for name in ("lr", "lr_late", "collision_stiffness", "inext_weight", "query_radius"):
             check_positive(getattr(self, name), name)
         for name in ("hidden_std", "collision_eps", "grad_clip"):
@@ -282,7 +285,8 @@ class TrainSettings:
             raise ValueError(f"speeds: expected positive playback speeds, got {self.speeds}")
 
     def key_dict(self) -> dict:
-        """The run's identity: the settings without ``steps`` and ``checkpoint_every``.
+        """The run's identity: the settings without ``steps``, ``checkpoint_every`` and
+        ``average_from`` (none changes the training trajectory).
 
         A run continued for more steps is the same run; the model's part is
         :meth:`GapsSettings.key_dict`. ``k_ext_rings`` and ``replay`` are left out when 0 and
@@ -290,7 +294,7 @@ class TrainSettings:
         they existed do not change.
         """
         d = dataclasses.asdict(self)
-        for k in ("steps", "checkpoint_every"):
+        for k in ("steps", "checkpoint_every", "average_from"):
             d.pop(k)
         for k in ("k_ext_rings", "replay"):
             if d[k] == 0:

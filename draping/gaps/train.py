@@ -22,6 +22,7 @@ import torch
 from draping.body import AnnyBody
 from draping.collision import MeshQuery
 
+from .average import WeightAverage
 from .data import ShapeCase, random_shapes, shape_case, training_sequences
 from .infer import build_model, motion_features, save_model
 from .losses import TERMS, body_contacts, loss_terms
@@ -84,6 +85,8 @@ class Trainer:
         self.timing = dict.fromkeys(STAGES, 0.0)
         self.history: list[float] = []  # collision losses of the latest fresh steps (replay)
         self.hard: list[tuple] = []  # (shape index, windows) of the latest hard steps
+        self.average = (None if settings.average_from is None
+                        else WeightAverage(settings.average_from))
 
     def _init_from(self, path: str) -> None:
         """Start from a saved model of the same garment and architecture (fine-tuning).
@@ -243,6 +246,8 @@ class Trainer:
                "lr": self.lr(), "epoch": self.epoch(),
                "grad_norm": norm if np.isfinite(norm) else None, **per}
         self.step += 1
+        if self.average is not None and self.step > self.average.start:
+            self.average.update(self.model)
         return rec
 
     def clip(self) -> float:
@@ -269,10 +274,20 @@ class Trainer:
             out["replay_hard"] = torch.tensor(
                 [[i] + [v for win in wins for v in win] for i, wins in self.hard],
                 dtype=torch.int64).reshape(-1, 1 + 2 * w)
+        if self.average is not None and self.step > self.average.start:
+            out["average"] = self.average.state()
         return out
 
     def load_state(self, tensors: dict, step: int) -> None:
-        """Restore a checkpoint's tensors."""
+        """Restore a checkpoint's tensors.
+
+        Raises
+        ------
+        ValueError
+            With ``average_from`` set and ``step`` past it, if the checkpoint holds no weight
+            average from that step (a run trained past it without averaging cannot resume
+            with it).
+        """
         self.model.load_state_dict(tensors["model"])
         self.opt.load_state_dict(tensors["optim"])
         if "grad_ref" in tensors:
@@ -282,6 +297,10 @@ class Trainer:
             self.hard = [(int(r[0]), [(int(r[k]), int(r[k + 1])) for k in range(1, len(r), 2)])
                          for r in tensors["replay_hard"].tolist()]
         self.step = int(step)
+        if self.average is not None and self.step > self.average.start:
+            self.average.load(tensors.get("average"))  # ValueError if it holds none
+        elif self.average is not None:
+            self.average = WeightAverage(self.average.start)
 
 
 def _fingerprint(settings: TrainSettings) -> str:
@@ -311,7 +330,8 @@ def train(settings: TrainSettings, out_dir: str | Path, *, minutes: float | None
     out_dir : str or Path
         Run folder: ``checkpoint.pt`` (every ``checkpoint_every`` steps), ``log.jsonl``
         (loss terms, learning rate, stage CPU seconds), ``model.pt`` (the exported model,
-        :func:`draping.gaps.load_model`), ``curves.png``.
+        :func:`draping.gaps.load_model`: the weight average with ``average_from``, then the
+        last weights in ``model_last.pt``), ``curves.png``.
     minutes : float, optional
         Wall-clock budget (minutes): stop (checkpointed and exported) when spent.
     steps : int, optional
@@ -394,7 +414,13 @@ def train(settings: TrainSettings, out_dir: str | Path, *, minutes: float | None
                      "stage_cpu_seconds": dict(tr.timing), "command": command,
                      "threads": torch.get_num_threads()},
     }
-    path = save_model(out / "model.pt", tr.model, record)
+    model = tr.model
+    if tr.average is not None and tr.average.count > 0:
+        record["training"]["average"] = {"from_step": tr.average.start,
+                                         "snapshots": tr.average.count}
+        save_model(out / "model_last.pt", tr.model, {**record, "weights": "last"})
+        model = tr.average.averaged(tr.model)
+    path = save_model(out / "model.pt", model, record)
     return TrainResult(out, path, tr.step, cpu / 60.0, wall / 60.0,
                        records[-1] if records else {})
 
