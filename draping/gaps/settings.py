@@ -285,10 +285,10 @@ class TrainSettings:
             raise ValueError(f"speeds: expected positive playback speeds, got {self.speeds}")
 
     def key_dict(self) -> dict:
-        """The run's identity: the settings without ``steps``, ``checkpoint_every`` and
-        ``average_from`` (none changes the training trajectory).
+        """The run's identity: the settings that change the training trajectory.
 
-        A run continued for more steps is the same run; the model's part is
+        ``steps``, ``checkpoint_every`` and ``average_from`` are left out: a run continued for
+        more steps, or exporting a weight average, is the same run. The model's part is
         :meth:`GapsSettings.key_dict`. ``k_ext_rings`` and ``replay`` are left out when 0 and
         ``pinch_inext`` when 1 and ``pinch_push`` when False, so the keys of runs from before
         they existed do not change.
