@@ -119,7 +119,7 @@ def _fnopt_pcg_panel(ax, plt, rows: dict, key: str, ylabel: str) -> None:
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.xaxis.set_minor_formatter(plt.NullFormatter())
-    ax.set_xlabel("optimiser CPU ms per frame (1 thread, inference mode)")
+    ax.set_xlabel("optimiser CPU ms per frame (1 thread, inference mode)", fontsize=8)
     ax.set_ylabel(ylabel, fontsize=8)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
@@ -365,7 +365,7 @@ def chart_hard(rec: dict, path) -> None:
                        if q["bound"] == "=")
         axes[0][col].set_title(f"{case[0]} {case[1]} x{case[2]}, {rec['res']}x{rec['res']}, "
                                f"{rec['frames']} frames\nFNOpt's speed-up over PCG-normal at "
-                               f"equal e_3D: {sp or 'none bracketed'}", fontsize=7)
+                               f"equal e_3D:\n{sp or 'none bracketed'}", fontsize=7)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
