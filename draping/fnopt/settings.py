@@ -100,6 +100,8 @@ class TrainSettings:
     rollout_extra: int = 20
     rollout_lr: float = 1e-4
     init: str = ""
+    proposal_iters: int = 0
+    proposal_extra: int = 10
     seed: int = 0
     eval_every: int = 1000
     checkpoint_every: int = 500
@@ -107,9 +109,9 @@ class TrainSettings:
     def __post_init__(self) -> None:
         check_positive(self.iter_weight, "iter_weight", strict=False)
         check_positive(self.rollout_lr, "rollout_lr")
-        for name in ("steps", "rollout_steps", "rollout_extra"):
+        for name in ("steps", "rollout_steps", "rollout_extra", "proposal_iters"):
             check_int(getattr(self, name), name, low=0)
-        for name in ("rollout_frames", "rollout_iters", "rollout_batch"):
+        for name in ("rollout_frames", "rollout_iters", "rollout_batch", "proposal_extra"):
             check_int(getattr(self, name), name, low=1)
         if self.step_rule != "subspace":
             raise ValueError(f"step_rule: expected 'subspace', got {self.step_rule!r}")

@@ -45,6 +45,7 @@ from .solvers import (
     solve_reference,
 )
 from .tbptt import rollout_train_step
+from .train_proposal import proposal_train_step
 
 __all__ = ["TrainSettings", "HANDLE_DISTRIBUTIONS", "random_handles", "folding_pair", "Pool",
            "train", "initial_weights", "validation_set", "evaluate"]
@@ -393,11 +394,14 @@ def validation_set(res: int = 32, frames: int = 20) -> list[dict]:
     return out
 
 
-def evaluate(model: FNO, val: list[dict], iters: int = 10) -> float:
-    """Mean relative sub-optimality ``(L(a_N) - L*) / (L(0) - L*)`` over the validation set."""
+def evaluate(model: FNO, val: list[dict], iters: int = 10, fno_every: int = 1) -> float:
+    """Mean relative sub-optimality ``(L(a_N) - L*) / (L(0) - L*)`` over the validation set.
+
+    ``iters``, ``fno_every``: the solve's (:func:`draping.fnopt.model.solve_fnopt`).
+    """
     errs = []
     for c in val:
-        a = solve_fnopt(model, c["problem"], iters)
+        a = solve_fnopt(model, c["problem"], iters, fno_every=fno_every)
         l_n = float(c["p64"].loss(a.double())[0])
         errs.append(max(l_n - c["l_star"], 0.0) / max(c["l_zero"] - c["l_star"], 1e-30))
     return float(sum(errs) / len(errs))
@@ -455,6 +459,9 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
     t0 = time.perf_counter() - elapsed
     c0 = time.process_time() - cpu_elapsed
     ema = None
+    # the validation solve: N = 10, the FNO every iteration; the first-iteration role's own
+    n_role = 1 + s.proposal_iters
+    eval_solve = (n_role, n_role) if s.proposal_iters else (10, 1)
     pool_keys = ("x", "v", "a", "r_prev", "da", "hmask", "hrest", "kind", "vec",
                  "duration", "t", "size", "it", "n_inner", "frame", "max_frame", "mat")
 
@@ -469,7 +476,10 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
 
     stopped = False
     while step < total:
-        if step < s.steps:
+        if step < s.steps and s.proposal_iters:     # the first-iteration role
+            loss = proposal_train_step(model, opt, pool, s.proposal_iters, s.proposal_extra,
+                                       s.batch, _lr(s, step), s.reset_prob)
+        elif step < s.steps:
             loss = train_step(model, opt, pool, s, step)
         else:                           # the rollout-level fine-tuning (rollout_steps > 0)
             if step == s.steps:
@@ -483,7 +493,7 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
         if step % 50 == 0:
             bar.set_postfix(loss=f"{ema:.3f}")
         if step % s.eval_every == 0 or step == total:
-            v = evaluate(model, val)
+            v = evaluate(model, val, *eval_solve)
             rec = {"step": step, "phase": "pool" if step <= s.steps else "rollout",
                    "loss_ema": ema, "val_subopt": v,
                    "minutes": (time.perf_counter() - t0) / 60,
