@@ -461,7 +461,7 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
     ema = None
     # the validation solve: N = 10, the FNO every iteration; the first-iteration role's own
     n_role = 1 + s.proposal_iters
-    eval_solve = (n_role, n_role) if s.proposal_iters else (10, 1)
+    eval_solve = (n_role, n_role) if s.proposal_iters else ()
     pool_keys = ("x", "v", "a", "r_prev", "da", "hmask", "hrest", "kind", "vec",
                  "duration", "t", "size", "it", "n_inner", "frame", "max_frame", "mat")
 
@@ -493,7 +493,7 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
         if step % 50 == 0:
             bar.set_postfix(loss=f"{ema:.3f}")
         if step % s.eval_every == 0 or step == total:
-            v = evaluate(model, val, *eval_solve)
+            v = evaluate(model, val, *eval_solve) if eval_solve else evaluate(model, val)
             rec = {"step": step, "phase": "pool" if step <= s.steps else "rollout",
                    "loss_ema": ema, "val_subopt": v,
                    "minutes": (time.perf_counter() - t0) / 60,
