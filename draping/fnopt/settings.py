@@ -70,6 +70,13 @@ class TrainSettings:
     package's; ``""``: none); with ``steps=0`` only the fine-tuning runs. Three seeds of
     ``--init shipped --steps 0 --rollout-steps 800`` were not better than the shipped weights
     (docs/measurements/fnopt.md, session 11), so the default stays 0.
+
+    ``proposal_iters`` ``K`` (0, the shipped weights: off): every pool step trains the FNO for
+    the first-iteration role instead (:mod:`draping.fnopt.train_proposal`: its proposal on
+    iteration 0, then ``K`` classical iterations, loss ``log(L(a_K) - L_ref)`` straight through
+    them, ``L_ref`` after ``proposal_extra`` more); validation by the role's solve. Session 15:
+    ``K = 19`` from the shipped weights did not beat PCG at equal cost nor the shipped weights in
+    the same role (docs/measurements/fnopt.md), so the default stays 0.
     """
 
     width: int = 16
