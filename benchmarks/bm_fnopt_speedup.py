@@ -223,6 +223,13 @@ def equal_error_speedup(fast: list, slow: list, metric: str = EQUAL_ERROR_METRIC
     return out
 
 
+#: One colour per optimiser in every panel of the ratio chart (a resolution without some rows
+#: must not shift the others' colours); names not listed get matplotlib's next colour.
+RATIO_COLORS = {"fnopt": "C0", "pcg": "C1", "pcg-n": "C2", "lbfgs": "C3", "lbfgs-pre": "C4",
+                "lbfgs-wolfe": "C5", "lbfgs-wolfe64": "C6", "lbfgs-m10": "C7", "lbfgs-m20": "C8",
+                "lbfgs-autograd": "C9"}
+
+
 def part_ratio(args, net) -> dict:
     """FNOpt's speed-up over the L-BFGS variants at equal error along its curve (``iters`` JSONs).
 
@@ -271,7 +278,8 @@ def part_ratio(args, net) -> dict:
                         key=lambda r: r["iters"])
             if rs:
                 ax.plot([r["step_cpu_ms"] for r in rs], [r["e_3d"] for r in rs], marker="o",
-                        ms=3, label=name, lw=2.5 if name == "fnopt" else 1.2)
+                        ms=3, label=name, lw=2.5 if name == "fnopt" else 1.2,
+                        color=RATIO_COLORS.get(name))
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.xaxis.set_minor_formatter(plt.NullFormatter())
