@@ -24,6 +24,8 @@ Usage::
 
     python benchmarks/gaps_contacts.py --models dress RUN/model.pt --labels gaps ncs \\
         --cases held_out --frames 60 --optimum 1 [--span]
+    python benchmarks/gaps_contacts.py --models dress RUN/model.pt --cases random \\
+        --seeds 506-705 --skip 540,568,586 --frames 60     # a wide screen (session 15)
 
 Writes ``benchmarks/results/gaps_contacts_<name>.json`` and a PNG bar chart of the
 vertex-frames inside per body part and model. One thread.
@@ -260,11 +262,39 @@ def chart(res: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def parse_seeds(text: str, skip: str = "") -> list[int]:
+    """Seeds from ``"506-705"`` or ``"509,642,811"`` (ranges inclusive), less those in ``skip``.
+
+    Raises
+    ------
+    ValueError
+        If an item is not an integer or an ascending ``A-B`` range.
+    """
+    def items(t: str) -> list[int]:
+        out = []
+        for part in (p.strip() for p in t.split(",") if p.strip()):
+            a, sep, b = part.partition("-")
+            try:
+                lo, hi = int(a), int(b if sep else a)
+            except ValueError:
+                raise ValueError(f"seeds: expected integers or A-B ranges, got {part!r}") from None
+            if hi < lo:
+                raise ValueError(f"seeds: range {part!r} is not ascending")
+            out.extend(range(lo, hi + 1))
+        return out
+
+    drop = set(items(skip))
+    return [s for s in items(text) if s not in drop]
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--models", nargs="+", required=True, help="model files or shipped names")
     p.add_argument("--labels", nargs="+", default=None)
-    p.add_argument("--cases", default="held_out", choices=("held_out", "validation"))
+    p.add_argument("--cases", default="held_out", choices=("held_out", "validation", "random"))
+    p.add_argument("--seeds", default="506-705",
+                   help="--cases random: seeds in [500, 999], e.g. 506-705 or 509,642,811")
+    p.add_argument("--skip", default="", help="--cases random: seeds left out, e.g. 540,568,586")
     p.add_argument("--frames", type=int, default=60)
     p.add_argument("--pinch", type=float, default=0.01, help="pinch distance (m), default 1 cm")
     p.add_argument("--optimum", type=int, default=0, help="worst frames per case to re-solve")
@@ -276,7 +306,13 @@ def main(argv=None) -> int:
     import torch
 
     from draping.body import AnnyBody
-    from draping.gaps import drape_case, held_out_cases, load_model, validation_cases
+    from draping.gaps import (
+        drape_case,
+        held_out_cases,
+        load_model,
+        random_cases,
+        validation_cases,
+    )
 
     torch.set_num_threads(1)
     env = environment()
@@ -285,8 +321,13 @@ def main(argv=None) -> int:
         raise SystemExit("--labels: one per model")
     body = AnnyBody.load()
     parts = face_parts(body)
-    cases = (held_out_cases if a.cases == "held_out" else validation_cases)(a.frames)
+    if a.cases == "random":
+        cases = random_cases(parse_seeds(a.seeds, a.skip), a.frames)
+    else:
+        cases = (held_out_cases if a.cases == "held_out" else validation_cases)(a.frames)
     res = {"set": a.cases, "frames": a.frames, "pinch_m": a.pinch, "models": {}}
+    if a.cases == "random":
+        res["seeds"] = [c.seed for c in cases]
     c0 = time.process_time()
     for path, label in zip(a.models, labels):
         m = load_model(path)

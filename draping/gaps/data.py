@@ -39,6 +39,7 @@ __all__ = [
     "training_sequences",
     "sequence_of",
     "held_out_cases",
+    "random_cases",
     "validation_cases",
     "stress_cases",
     "check_case",
@@ -242,6 +243,35 @@ def validation_cases(frames: int = 60) -> list[Case]:
     motions = [("random", 500), ("random", 501), ("random", 502), ("walk", 0), ("squat", 0),
                ("arms", 0)]
     return [Case(m, seed, 1.0, s, frames) for (m, seed), s in zip(motions, shapes)]
+
+
+def random_cases(seeds, frames: int = 60) -> list[Case]:
+    """``random`` motions with the given seeds, each on the shape drawn with its own seed.
+
+    For screens wider than :func:`validation_cases` (session 15: 197 seeds of 506-705):
+    training-type motions and shapes that no run trains on and that are not held out.
+
+    Parameters
+    ----------
+    seeds : iterable of int
+        Seeds in [500, 999] (a run trains on ``random`` seeds below ``random_motions`` and
+        draws its shapes with its own seed; seeds >= 1000 are held out), no repeats.
+    frames : int
+        Frames per case (>= 3).
+
+    Raises
+    ------
+    ValueError
+        If a seed is outside [500, 999] or repeated, or ``seeds`` is empty.
+    TypeError
+        If a seed is not an integer.
+    """
+    frames = check_int(frames, "frames", low=3)
+    seeds = [check_int(s, "seeds", low=500, high=999) for s in seeds]
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise ValueError(f"seeds: expected distinct seeds, got {seeds}")
+    return [Case("random", s, 1.0, tuple(float(v) for v in random_shapes(1, s)[0]), frames)
+            for s in seeds]
 
 
 def held_out_cases(frames: int = 60) -> list[Case]:
