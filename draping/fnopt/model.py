@@ -39,7 +39,8 @@ __all__ = ["FNOConfig", "SpectralConv2d", "FNO", "features", "constant_features"
            "fno_correction", "fno_direction", "fno_inputs",
            "fnopt_iteration", "subspace_update", "solve_fnopt", "STEPS", "RECYCLE_MAX",
            "check_recycle", "check_fno_every", "recycled_basis", "carried_basis",
-           "N_INPUTS", "load_pretrained", "n_parameters", "stiffness_numbers", "WEIGHTS"]
+           "N_INPUTS", "load_pretrained", "n_parameters", "optimizer_step",
+           "stiffness_numbers", "WEIGHTS"]
 
 #: Input channels: preconditioned gradient (3), the previous one (3), previous update (3), mask (1),
 #: three stiffness numbers (3), two grid coordinates (2).
@@ -660,6 +661,21 @@ def n_parameters(model: nn.Module) -> int:
 #: The shipped weights (trained by ``polygeo train-fnopt``) and their JSON record.
 WEIGHTS = Path(__file__).resolve().parent.parent / "data" / "fnopt_model.pt"
 RECORD = WEIGHTS.with_suffix(".json")
+
+
+def optimizer_step(model: nn.Module, opt: torch.optim.Optimizer, loss: torch.Tensor,
+                   lr: float, clip: float = 1.0) -> None:
+    """One training update of ``model``: ``opt`` at rate ``lr`` on ``loss``'s gradient.
+
+    The gradient's global norm is clipped at ``clip`` first (every FNOpt training loop's
+    rule). ``loss``: a scalar tensor in the graph of ``model``'s parameters.
+    """
+    for grp in opt.param_groups:
+        grp["lr"] = lr
+    opt.zero_grad()
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(model.parameters(), clip)
+    opt.step()
 
 
 def load_pretrained(path: str | Path | None = None) -> FNO:

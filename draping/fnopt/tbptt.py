@@ -29,7 +29,7 @@ from __future__ import annotations
 import torch
 
 from .handles import DT
-from .model import FNO, constant_features, subspace_update
+from .model import FNO, constant_features, optimizer_step, subspace_update
 from .solvers import (
     StepProblem,
     laplace_preconditioner,
@@ -145,20 +145,7 @@ def rollout_train_step(model: FNO, opt, pool, frames: int, iters: int, batch: in
     q = torch.where(ok, q, torch.zeros_like(q))
     term = torch.where(q > 0, torch.log1p(q.clamp(min=0)), q)
     loss = term.sum() / max(int(ok.sum()), 1)
-    for grp in opt.param_groups:
-        grp["lr"] = lr
-    opt.zero_grad()
-    loss.backward()
-    torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-    opt.step()
+    optimizer_step(model, opt, loss, lr)
     with torch.no_grad():
-        pool.x[ids], pool.v[ids] = x.detach().float(), v.detach().float()
-        pool.t[ids] += frames * DT
-        pool.frame[ids] += frames
-        bad_frame = ~ok.all(0)
-        for j, i in enumerate(ids.tolist()):
-            bad = bool(bad_frame[j]) or not bool(torch.isfinite(pool.x[i]).all()) or \
-                float(pool.v[i].abs().max()) > 50.0
-            if bad or pool.frame[i] >= pool.max_frame[i]:
-                pool.reset(i)
+        pool.settle(ids, x.detach().float(), v.detach().float(), frames, ok.all(0))
     return float(loss.detach())

@@ -32,7 +32,7 @@ import torch
 
 from . import cloth
 from .handles import DT, ease
-from .model import FNO, FNOConfig, n_parameters, solve_fnopt, subspace_update
+from .model import FNO, FNOConfig, n_parameters, optimizer_step, solve_fnopt, subspace_update
 from .settings import HANDLE_DISTRIBUTIONS, TrainSettings
 from .solvers import (
     StepProblem,
@@ -174,6 +174,22 @@ class Pool:
 
     def _u(self, *shape) -> torch.Tensor:
         return torch.rand(*shape, generator=self.gen)
+
+    def settle(self, ids: torch.Tensor, x: torch.Tensor, v: torch.Tensor, frames: int,
+               ok: torch.Tensor) -> None:
+        """Entries ``ids`` continue from ``x``, ``v`` ``(B, r, r, 3)`` after ``frames`` frames.
+
+        An entry is re-drawn (:meth:`reset`) where ``ok`` ``(B,)`` is false, where it blew up
+        (non-finite, or a speed above 50 m/s) or where it reached its length.
+        """
+        self.x[ids], self.v[ids] = x, v
+        self.t[ids] += frames * DT
+        self.frame[ids] += frames
+        for j, i in enumerate(ids.tolist()):
+            bad = not bool(ok[j]) or not bool(torch.isfinite(self.x[i]).all()) or \
+                float(self.v[i].abs().max()) > 50.0
+            if bad or self.frame[i] >= self.max_frame[i]:
+                self.reset(i)
 
     def reset(self, i: int) -> None:
         """Draw entry ``i`` afresh: a sheet at rest, random material, handles and motion."""
@@ -328,12 +344,7 @@ def train_step(model: FNO, opt, pool: Pool, s: TrainSettings, step: int) -> floa
         loss = (w * term).sum() / (w * ok).sum().clamp(min=1.0)
     else:
         loss = term.sum() / max(int(ok.sum()), 1)
-    for grp in opt.param_groups:
-        grp["lr"] = _lr(s, step)
-    opt.zero_grad()
-    loss.backward()
-    torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-    opt.step()
+    optimizer_step(model, opt, loss, _lr(s, step))
     with torch.no_grad():
         pool.a[ids] = a_new.detach().float()
         pool.r_prev[ids] = z.detach()

@@ -34,7 +34,7 @@ from __future__ import annotations
 import torch
 
 from .handles import DT
-from .model import FNO, constant_features, subspace_update
+from .model import FNO, constant_features, optimizer_step, subspace_update
 from .solvers import (
     StepProblem,
     laplace_preconditioner,
@@ -148,24 +148,12 @@ def proposal_train_step(model: FNO, opt, pool, iters: int, extra: int, batch: in
     surrogate, rel, a_k = proposal_losses(model, p, p64, iters, extra)
     ok = torch.isfinite(surrogate) & torch.isfinite(rel)
     loss = torch.where(ok, surrogate, torch.zeros_like(surrogate)).sum() / max(int(ok.sum()), 1)
-    for grp in opt.param_groups:
-        grp["lr"] = lr
-    opt.zero_grad()
-    loss.backward()
-    torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-    opt.step()
+    optimizer_step(model, opt, loss, lr)
     with torch.no_grad():
         hm = pool.hmask[ids][..., None]
         v_new = pool.v[ids] + DT * p.compose(a_k).float()
         x_new = (pool.x[ids] + DT * v_new) * (1 - hm) + target.float() * hm
-        pool.x[ids], pool.v[ids] = x_new, v_new
-        pool.t[ids] += DT
-        pool.frame[ids] += 1
-        for j, i in enumerate(ids.tolist()):
-            bad = not bool(ok[j]) or not bool(torch.isfinite(pool.x[i]).all()) or \
-                float(pool.v[i].abs().max()) > 50.0
-            if bad or pool.frame[i] >= pool.max_frame[i]:
-                pool.reset(i)
+        pool.settle(ids, x_new, v_new, 1, ok)
         if reset_prob > 0 and float(torch.rand(1, generator=pool.gen)) < reset_prob:
             pool.reset(int(torch.randint(pool.x.shape[0], (1,), generator=pool.gen)))
     return float(rel[ok].mean()) if bool(ok.any()) else 1.0    # none finite: "nothing done"
