@@ -131,6 +131,9 @@ def register_simulate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--recycle", type=int, default=0,
                    help="fnopt: carry the span of each solve's last K updates to the next "
                    "frame's solve as extra directions (0: off; default 0)")
+    p.add_argument("--weights", default=None, metavar="FILE",
+                   help="fnopt: weights written by `polygeo train-fnopt` (RUN/fnopt_model.pt, "
+                   "its JSON record beside it; default: the shipped weights)")
     p.add_argument("--fno-every", type=int, default=1,
                    help="fnopt: the FNO's proposal on every E-th iteration only, the classical "
                    "step between (E >= --iters: the first iteration only; default 1)")
@@ -169,9 +172,16 @@ def run_simulate(args: argparse.Namespace) -> int:
                     material=Material(args.stretch, args.shear, args.bend),
                     repulsion=args.repulsion, fno_coarse=args.fno_coarse,
                     recycle=args.recycle, fno_every=args.fno_every)
+    model = None
+    if args.weights is not None:
+        if s.optimizer != "fnopt":
+            raise ValueError(f"--weights: only with --optimizer fnopt, got {s.optimizer!r}")
+        from .model import load_pretrained
+
+        model = load_pretrained(args.weights)
     out = Path(args.out)
     bar = runs.progress(total=s.frames, desc=s.optimizer, quiet=args.quiet)
-    ro = run(s, progress=lambda: bar.update(1))
+    ro = run(s, model=model, progress=lambda: bar.update(1))
     bar.close()
     ref = None
     if not args.no_reference:
@@ -181,6 +191,6 @@ def run_simulate(args: argparse.Namespace) -> int:
             bar = runs.progress(total=s.frames, desc="reference", quiet=args.quiet)
             ref = reference_rollout(s, out, progress=lambda: bar.update(1))
             bar.close()
-    res = write_outputs(out, s, ro, ref, gif_every=args.gif_every)
+    res = write_outputs(out, s, ro, ref, gif_every=args.gif_every, weights=args.weights)
     print(json.dumps(res["mean"]))
     return 0

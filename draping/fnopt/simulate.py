@@ -201,8 +201,13 @@ def summary(values) -> float:
 
 
 def write_outputs(out_dir: str | Path, settings: SimSettings, ro: Rollout,
-                  ref: Rollout | None, gif_every: int = 2, quiet: bool = True) -> dict:
-    """PLY per frame, ``metrics.json``, ``errors.png`` and ``rollout.gif`` in ``out_dir``."""
+                  ref: Rollout | None, gif_every: int = 2, quiet: bool = True,
+                  weights: str | Path | None = None) -> dict:
+    """PLY per frame, ``metrics.json``, ``errors.png`` and ``rollout.gif`` in ``out_dir``.
+
+    ``weights``: the FNOpt weights file the rollout used, recorded in ``metrics.json`` (as
+    :func:`polygeo.runs.record_path` names it; ``None``: the shipped weights, or no FNO).
+    """
     from polygeo import io as pio
     from polygeo import runs
 
@@ -226,6 +231,7 @@ def write_outputs(out_dir: str | Path, settings: SimSettings, ro: Rollout,
             rec["e_3d"] = m["e_3d"][k - 1]
         per_frame.append(rec)
     res = {"settings": {**asdict(settings), "material": asdict(settings.material)},
+           "weights": None if weights is None else runs.record_path(weights),
            "reference_tol_m_s2": REFERENCE_TOL,
            "mean": {"L_cloth": summary(ro.loss), "ms": summary(ro.ms),
                     "cpu_ms": summary(ro.cpu_ms) if ro.cpu_ms is not None else float("nan")},

@@ -132,3 +132,33 @@ def test_simulate_cli_runs_pcg(tmp_path):
     assert m["settings"]["optimizer"] == "pcg" and len(m["frames"]) == 3
     with pytest.raises(SystemExit):
         main(["simulate", "--optimizer", "pcg-n", "-o", str(tmp_path / "x")])
+
+
+def test_simulate_cli_loads_trained_weights(tmp_path):
+    """``--weights`` runs the given FNO: a zeroed copy of the shipped one changes the rollout."""
+    import json
+    import shutil
+
+    from draping.fnopt.model import WEIGHTS
+    from polygeo.cli import main
+
+    zero = tmp_path / "run" / "fnopt_model.pt"
+    zero.parent.mkdir()
+    sd = torch.load(WEIGHTS, weights_only=True)
+    torch.save({k: torch.zeros_like(v) for k, v in sd.items()}, zero)
+    shutil.copy(WEIGHTS.with_suffix(".json"), zero.with_suffix(".json"))
+    args = ["simulate", "--res", "8", "--frames", "3", "--iters", "3", "--no-reference",
+            "--quiet"]
+    assert main(args + ["-o", str(tmp_path / "shipped")]) in (0, None)
+    assert main(args + ["--weights", str(WEIGHTS), "-o", str(tmp_path / "same")]) in (0, None)
+    assert main(args + ["--weights", str(zero), "-o", str(tmp_path / "zero")]) in (0, None)
+    m = {k: json.loads((tmp_path / k / "metrics.json").read_text())
+         for k in ("shipped", "same", "zero")}
+    assert m["shipped"]["weights"] is None and m["zero"]["weights"].endswith("fnopt_model.pt")
+    loss = {k: [f["L_cloth"] for f in v["frames"]] for k, v in m.items()}
+    assert loss["same"] == loss["shipped"]
+    assert loss["zero"] != loss["shipped"]
+    assert main(args + ["--weights", str(tmp_path / "missing.pt"), "-o",
+                        str(tmp_path / "x")]) not in (0, None)
+    assert main(args + ["--optimizer", "pcg", "--weights", str(WEIGHTS), "-o",
+                        str(tmp_path / "y")]) not in (0, None)
