@@ -94,7 +94,6 @@ from bm_fnopt_common import (  # noqa: E402,F401
     _measure_starts,
     _plt,
     _rollout,
-    _row,
     _step,
     chart_iters,
 )

@@ -99,10 +99,6 @@ def _step(name: str, n: int, net=None, lr=None, fno: dict | None = None, **kw):
     rows on the fused gradient), as ``polygeo simulate`` runs them; ``<name>-autograd`` rows
     and PyTorch's strong-Wolfe L-BFGS keep autograd.
     """
-    return _row(name, n, net, lr, fno, **kw)
-
-
-def _row(name: str, n: int, net=None, lr=None, fno: dict | None = None, **kw):
     # the classical solvers get the fused closed-form gradient FNOpt's inference uses
     # (``fused_grad``, like for like); ``<name>-autograd``: the same with autograd's gradient
     if name.endswith(AUTOGRAD):

@@ -46,18 +46,28 @@ from .step_problem import autograd_free_call
 __all__ = ["classical_iterations", "first_update", "proposal_losses", "proposal_train_step"]
 
 
+def _preconditioners(model: FNO, p: StepProblem):
+    """``(P, P_n)`` of a step problem, built once and shared by its iterations.
+
+    ``P``: :func:`laplace_preconditioner`; ``P_n``: :func:`normal_preconditioner` with
+    ``model.config.normal``, else ``None``.
+    """
+    return laplace_preconditioner(p), (normal_preconditioner(p) if model.config.normal else None)
+
+
 def classical_iterations(model: FNO, p: StepProblem, a: torch.Tensor, da: torch.Tensor,
-                         iters: int) -> tuple[torch.Tensor, torch.Tensor]:
+                         iters: int, precond=None) -> tuple[torch.Tensor, torch.Tensor]:
     """``iters`` classical updates of FNOpt's step from ``a`` with memory ``da``: ``(a_K, da_K)``.
 
     The non-learned iterations of :func:`draping.fnopt.model.solve_fnopt` (the span of ``-P g``,
     the previous update and, with ``model.config.normal``, the normal directions), no graph;
     ``a``, ``da``: ``(B, H, W, 3)`` m/s^2 (free part); returned: the last iterate and the last
-    update (the memory to continue from). ``iters = 0`` returns ``(a, da)``.
+    update (the memory to continue from). ``iters = 0`` returns ``(a, da)``. ``precond``:
+    :func:`_preconditioners` of ``(model, p)`` when the caller has them (else built here).
     """
+    pre, pn = precond if precond is not None else _preconditioners(model, p)
+
     def run(a, da):
-        pre = laplace_preconditioner(p)
-        pn = normal_preconditioner(p) if model.config.normal else None
         a, da = a.detach().clone(), da.detach().clone()
         for _ in range(iters):
             _, g, hvp = p.grad_hvp(a)
@@ -73,14 +83,16 @@ def classical_iterations(model: FNO, p: StepProblem, a: torch.Tensor, da: torch.
     return a.clone(), da.clone()
 
 
-def first_update(model: FNO, p: StepProblem) -> torch.Tensor:
-    """FNOpt's first update from ``a = 0`` ``(B, H, W, 3)``, the graph kept through the proposal."""
-    pre = laplace_preconditioner(p)
+def first_update(model: FNO, p: StepProblem, precond=None) -> torch.Tensor:
+    """FNOpt's first update from ``a = 0`` ``(B, H, W, 3)``, the graph kept through the proposal.
+
+    ``precond``: :func:`_preconditioners` of ``(model, p)`` when the caller has them.
+    """
+    pre, pn = precond if precond is not None else _preconditioners(model, p)
     a = torch.zeros_like(p.x_prev)
     _, g, hvp = p.grad_hvp(a)
     z = pre(g) * p.free
-    zn = normal_directions(p, g, normal_preconditioner(p), model.config.normal_split) \
-        if model.config.normal else None
+    zn = normal_directions(p, g, pn, model.config.normal_split) if pn is not None else None
     return subspace_update(model, p, g, hvp, z, torch.zeros_like(a), torch.zeros_like(a),
                            create_graph=True, zn=zn, const=constant_features(p, a.dtype))[0]
 
@@ -115,10 +127,11 @@ def proposal_losses(model: FNO, p: StepProblem, p64: StepProblem, iters: int, ex
     """
     if int(iters) < 1 or int(extra) < 1:
         raise ValueError(f"iters, extra: expected >= 1, got {iters!r}, {extra!r}")
-    a1 = first_update(model, p)
+    precond = _preconditioners(model, p)
+    a1 = first_update(model, p, precond)
     a1d = a1.detach()
-    a_k, da_k = classical_iterations(model, p, a1d, a1d, iters)
-    a_ref = classical_iterations(model, p, a_k, da_k, extra)[0]
+    a_k, da_k = classical_iterations(model, p, a1d, a1d, iters, precond)
+    a_ref = classical_iterations(model, p, a_k, da_k, extra, precond)[0]
     with torch.no_grad():
         l0 = p64.loss(torch.zeros_like(a_k).double())
         lk = p64.loss(a_k.double())

@@ -79,3 +79,33 @@ def quadratic_problem(res=(12, 10), stiffness: float = 400.0, load: float = 10.0
     q.k = float(p.mass.mean()) * p.dt ** 2 * stiffness
     q.b = torch.randn(x.shape, generator=g, dtype=F64) * float(p.mass.mean()) * p.dt ** 2 * load
     return q
+
+
+#: Training settings of a tiny pool (8x8 sheets, 4 entries) for the training-loop tests.
+TINY_TRAIN = dict(width=4, modes=2, layers=1, projection=8, res=8, pool=4, batch=2, steps=0,
+                  inner_min=2, inner_max=3, max_frames=40, eval_every=3, checkpoint_every=3,
+                  seed=3)
+
+
+def tiny_fno(normal: bool = True, zero: bool = False):
+    """A seeded 4-wide, 1-layer FNO (``normal``: with the normal directions, split 2); ``zero``:
+    every parameter 0, so its proposal is exactly 0. The global RNG is left as it was."""
+    from draping.fnopt import model
+
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(0)
+        net = model.FNO(model.FNOConfig(4, 2, 1, 8, normal, 2 if normal else 0))
+    if zero:
+        with torch.no_grad():
+            for q in net.parameters():
+                q.zero_()
+    return net
+
+
+def tiny_pool(seed: int = 0):
+    """A :data:`TINY_TRAIN` pool whose sheets are 0.3 s into their motion (handles moving)."""
+    from draping.fnopt.train import Pool, TrainSettings
+
+    pool = Pool(TrainSettings(**TINY_TRAIN), torch.Generator().manual_seed(seed))
+    pool.t[:] = 0.3
+    return pool

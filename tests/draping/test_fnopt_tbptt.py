@@ -2,28 +2,16 @@
 
 import pytest
 import torch
+from fnopt_cases import TINY_TRAIN, tiny_fno, tiny_pool
 
 from draping.fnopt import model, tbptt, train
 from draping.fnopt.handles import DT
-from draping.fnopt.train import Pool, TrainSettings
+from draping.fnopt.train import TrainSettings
 
 torch.set_num_threads(1)
 
-TINY = dict(width=4, modes=2, layers=1, projection=8, res=8, pool=4, batch=2, steps=0,
-            inner_min=2, inner_max=3, max_frames=40, eval_every=3, checkpoint_every=3, seed=3)
-
-
-def _net(normal=True):
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(0)
-        return model.FNO(model.FNOConfig(4, 2, 1, 8, normal, 2 if normal else 0))
-
-
-def _pool(seed=0):
-    """A tiny pool whose sheets are 0.3 s into their motion (handles moving, not at rest)."""
-    pool = Pool(TrainSettings(**TINY), torch.Generator().manual_seed(seed))
-    pool.t[:] = 0.3
-    return pool
+TINY = TINY_TRAIN
+_net, _pool = tiny_fno, tiny_pool
 
 
 def test_unrolled_solve_is_the_inference_solve_without_its_guard():

@@ -2,33 +2,25 @@
 
 import pytest
 import torch
+from fnopt_cases import TINY_TRAIN, tiny_fno, tiny_pool
 
 from draping.fnopt import model, train, train_proposal
 from draping.fnopt.classical import solve_pcg
 from draping.fnopt.handles import DT
-from draping.fnopt.train import Pool, TrainSettings
+from draping.fnopt.train import TrainSettings
 
 torch.set_num_threads(1)
 
-TINY = dict(width=4, modes=2, layers=1, projection=8, res=8, pool=4, batch=2, steps=0,
-            inner_min=2, inner_max=3, max_frames=40, eval_every=3, checkpoint_every=3, seed=3)
+TINY = TINY_TRAIN
 
 
 def _net(zero=False):
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(0)
-        net = model.FNO(model.FNOConfig(4, 2, 1, 8, True, 2))
-    if zero:                                    # a model whose proposal is exactly 0
-        with torch.no_grad():
-            for q in net.parameters():
-                q.zero_()
-    return net
+    return tiny_fno(zero=zero)
 
 
 def _problems(seed=0):
     """Tiny pool problems (float32 and float64) 0.3 s into their motion, and the pool."""
-    pool = Pool(TrainSettings(**TINY), torch.Generator().manual_seed(seed))
-    pool.t[:] = 0.3
+    pool = tiny_pool(seed)
     ids = torch.arange(4)
     p, _ = pool.problem(ids, analytic_hvp=True)
     p64, _ = pool.problem(ids, torch.float64, analytic_hvp=True)
