@@ -41,6 +41,8 @@ if TYPE_CHECKING:
         template_garment,
         training_sequences,
         validation_cases,
+        validation_random_cases,
+        VALIDATION_RANDOM_SEEDS,
     )
     from .infer import (
         Drape,
@@ -86,6 +88,8 @@ __all__ = [
     "held_out_cases",
     "validation_cases",
     "random_cases",
+    "validation_random_cases",
+    "VALIDATION_RANDOM_SEEDS",
     "random_shapes",
     "sequence_of",
     "shape_case",

@@ -274,6 +274,28 @@ def random_cases(seeds, frames: int = 60) -> list[Case]:
             for s in seeds]
 
 
+#: Seeds of :func:`validation_random_cases` (declared in session 16, before any model was scored
+#: on them): disjoint from the training motions (seeds ``0 .. random_motions - 1``),
+#: :func:`validation_cases` (500-505), the wide held-out set (506-705) and the session-15 screen
+#: (706-905) of ``docs/measurements/gaps.md``, and :func:`held_out_cases` (>= 1000).
+VALIDATION_RANDOM_SEEDS = tuple(range(906, 966))
+
+
+def validation_random_cases(frames: int = 60) -> list[Case]:
+    """Sixty random motions for choosing settings: :func:`random_cases` of
+    :data:`VALIDATION_RANDOM_SEEDS` (906-965), each on its own seed's shape.
+
+    The six :func:`validation_cases` gate at the size of one vertex-frame's noise; these judge
+    a model on the motion type (``random``) where the dress's eps_e is highest.
+
+    Raises
+    ------
+    ValueError
+        If ``frames`` < 3.
+    """
+    return random_cases(VALIDATION_RANDOM_SEEDS, frames)
+
+
 def held_out_cases(frames: int = 60) -> list[Case]:
     """Evaluation cases held back from training.
 

@@ -63,3 +63,17 @@ def test_screen_writes_its_seeds(tmp_path):
     rows = res["models"]["dress"]["cases"]
     assert [r["case"] for r in rows] == ["random:508:1", "random:510:1"]
     assert all(len(r["per_frame"]) == 3 for r in rows)
+
+
+def test_validation_random_cases_are_disjoint_from_every_other_set():
+    from draping.gaps import VALIDATION_RANDOM_SEEDS, TrainSettings, validation_random_cases
+
+    cases = validation_random_cases(frames=5)
+    assert [c.seed for c in cases] == list(range(906, 966)) == list(VALIDATION_RANDOM_SEEDS)
+    assert cases == random_cases(range(906, 966), frames=5)
+    seeds = set(VALIDATION_RANDOM_SEEDS)
+    assert not seeds & set(range(500, 906))  # validation_cases, wide set, session-15 screen
+    assert not seeds & set(range(TrainSettings().random_motions))
+    assert not seeds & {c.seed for c in held_out_cases(5) if c.motion == "random"}
+    with pytest.raises(ValueError, match="frames"):
+        validation_random_cases(frames=2)
