@@ -52,8 +52,14 @@ from draping.gaps.pinch import PARTS, body_part, face_parts  # noqa: E402,F401
 from polygeo.runs import record_path  # noqa: E402
 
 
-def contacts(drape, body, parts: np.ndarray, pinch: float) -> dict:
-    """Inside vertex-frames of one drape, by body part, depth and pinch."""
+def contacts(drape, body, parts: np.ndarray, pinch: float, query=None) -> dict:
+    """Inside vertex-frames of one drape, by body part, depth and pinch.
+
+    ``query``: optionally, per frame the ``(distance (V,), face (V,))`` arrays of the drape's
+    vertices against its posed body (``MeshQuery.query`` in float64), when the caller has
+    them already (``bm_gaps_wide`` scores several models on one posed body); None: queried
+    here.
+    """
     import torch
 
     from draping.collision import MeshQuery
@@ -61,13 +67,18 @@ def contacts(drape, body, parts: np.ndarray, pinch: float) -> dict:
     faces = body.faces.numpy()
     x = drape.x.double()
     bv = drape.body_vertices.double()
-    q = MeshQuery(bv[0], body.faces)
+    if query is not None and len(query) != x.shape[0]:
+        raise ValueError(f"query: expected {x.shape[0]} frames, got {len(query)}")
+    q = MeshQuery(bv[0], body.faces) if query is None else None
     per_part = {p: {"inside": 0, "pinched": 0} for p in PARTS}
     depth, frames, verts, counts = [], [], set(), []
     for t in range(x.shape[0]):
-        q.update(bv[t])
-        r = q.query(x[t])
-        d, f = np.asarray(r.distance), np.asarray(r.face)
+        if query is None:
+            q.update(bv[t])
+            r = q.query(x[t])
+            d, f = np.asarray(r.distance), np.asarray(r.face)
+        else:
+            d, f = (np.asarray(a) for a in query[t])
         ins = np.nonzero(d < 0)[0]
         counts.append(int(ins.size))
         if ins.size == 0:

@@ -349,21 +349,39 @@ def drape_case(model: GapsModel, body: AnnyBody, case: Case) -> Drape:
     return drape_motion(model, body, m, torch.tensor(case.shape, dtype=torch.float32), None)
 
 
-def frame_metrics(d: Drape, body: AnnyBody) -> dict:
+def frame_metrics(d: Drape, body: AnnyBody, distance: Any = None) -> dict:
     """Per-frame metrics of a drape.
 
     ``eps_e``, ``eps_a``, ``eps_c`` (%) against the shape's rest garment and the full posed
     body, and the minimum body distance (mm).
+
+    Parameters
+    ----------
+    d : Drape
+    body : AnnyBody
+    distance : (T, V) float tensor, optional
+        Signed distances (m) of the drape's vertices to its posed body per frame, when the
+        caller has queried them already (a benchmark scoring several models on one posed
+        body); None: queried here (:class:`draping.collision.MeshQuery`, float64).
+
+    Raises
+    ------
+    ValueError
+        ``distance`` not of shape ``(T, V)``.
     """
     g = d.case.garment
     tmpl = torch.as_tensor(g.vertices, dtype=torch.float64)
     x = d.x.double()
-    q = MeshQuery(d.body_vertices[0].double(), body.faces)
-    dist = []
-    for t in range(x.shape[0]):
-        q.update(d.body_vertices[t].double())
-        dist.append(q.query(x[t]).distance)
-    dist = torch.stack(dist)
+    if distance is None:
+        q = MeshQuery(d.body_vertices[0].double(), body.faces)
+        dist = []
+        for t in range(x.shape[0]):
+            q.update(d.body_vertices[t].double())
+            dist.append(q.query(x[t]).distance)
+        dist = torch.stack(dist)
+    else:
+        dist = as_tensor(distance, "distance", dtype=torch.float64)
+        check_shape(dist, "distance", tuple(x.shape[:2]))
     return {
         "eps_e": edge_error(x, tmpl, g.faces).tolist(),
         "eps_a": area_error(x, tmpl, g.faces).tolist(),
