@@ -15,6 +15,8 @@ import warnings
 
 import torch
 
+from polygeo.checks import check_int
+
 from .preconditioners import (
     curvature_bound,
     laplace_preconditioner,
@@ -22,6 +24,7 @@ from .preconditioners import (
     normal_preconditioner,
 )
 from .step_problem import StepProblem, autograd_free_call
+from .twolevel import check_coarse, coarse_correction, galerkin_space
 
 __all__ = ["solve_gd", "solve_pgd", "solve_pcg", "solve_adam", "solve_lbfgs",
            "solve_lbfgs_wolfe", "solve_reference", "CLASSICAL", "REFERENCE_TOL"]
@@ -95,7 +98,8 @@ def solve_pgd(p: StepProblem, iters: int, k_eff: float = 1.0, a0=None) -> torch.
 
 @_autograd_free(gradient_option=False)
 def solve_pcg(p: StepProblem, iters: int, k_eff: float = 1.0, a0=None,
-              normal: bool = False, split: int = 0) -> torch.Tensor:
+              normal: bool = False, split: int = 0, coarse: int = 0, coarse_every: int = 1,
+              memory: dict | None = None) -> torch.Tensor:
     """Preconditioned descent with memory (FNOpt's subspace step without the FNO).
 
     Each update minimises the quadratic model of ``L``
@@ -103,18 +107,53 @@ def solve_pcg(p: StepProblem, iters: int, k_eff: float = 1.0, a0=None,
     conjugate-gradient method with exact two-dimensional steps, DCT metric of
     :func:`laplace_preconditioner`). ``normal``: the span also holds the out-of-plane direction
     of :func:`normal_preconditioner` (three-dimensional steps; ``split``: that direction cut
-    into its low and high DCT modes, :func:`normal_directions`).
+    into its low and high DCT modes, :func:`normal_directions`). ``coarse`` (0, the default:
+    off): the span also holds the two-level coarse correction ``-P A_c^-1 P^T g`` of
+    :mod:`draping.fnopt.twolevel` on the grid whose longer side has ``coarse`` vertices (``A_c``
+    the Galerkin operator of the Hessian at the start ``a0``, built and factored once per call).
+    ``coarse_every`` with ``memory`` (a dict the caller keeps across the frames of a rollout):
+    the coarse space is rebuilt only every ``coarse_every``-th call and reused in between (its
+    build, ~75 Hessian products, costs about as much as 20 iterations at 64x64; the sheet
+    changes little from frame to frame and the subspace step weighs the direction by exact
+    products, so an older ``A_c`` still serves as a preconditioner).
+
+    Raises
+    ------
+    TypeError, ValueError
+        If ``coarse`` is not 0 or an int >= 2 (:func:`draping.fnopt.twolevel.check_coarse`),
+        ``coarse_every`` not an int >= 1, or ``coarse_every > 1`` without ``memory``.
     """
+    check_coarse(coarse)
+    check_int(coarse_every, "coarse_every", low=1)
+    if coarse_every > 1 and memory is None:
+        raise ValueError(f"coarse_every: {coarse_every} needs a memory dict (got None)")
     pre = laplace_preconditioner(p, k_eff)
     pn = normal_preconditioner(p) if normal else None
     a = torch.zeros_like(p.x_prev) if a0 is None else a0.clone()
     da = torch.zeros_like(a)
+    space = None
     for _ in range(iters):
         _, g, hvp = p.grad_hvp(a)
         dirs = [-pre(g) * p.free3, da] + (normal_directions(p, g, pn, split) if normal else [])
+        if coarse:
+            space = space or _coarse_space(p, hvp, coarse, coarse_every, memory)
+            dirs.append(-coarse_correction(space, g))
         da = p.subspace_step(g, dirs, hvp)
         a = a + da
     return p.compose(a)
+
+
+def _coarse_space(p: StepProblem, hvp, k: int, every: int, memory: dict | None):
+    """:func:`galerkin_space` of ``p``, or the one kept in ``memory`` while it is younger
+    than ``every`` calls and of the same grid and handles."""
+    if memory is None:
+        return galerkin_space(p, hvp, k)
+    kept = memory.get("coarse")
+    if (kept is None or kept[1] >= every or kept[2] != k or kept[3].shape != p.free.shape
+            or not torch.equal(kept[3], p.free)):
+        kept = (galerkin_space(p, hvp, k), 0, k, p.free.clone())
+    memory["coarse"] = (kept[0], kept[1] + 1, *kept[2:])
+    return kept[0]
 
 
 @_autograd_free(gradient_option=True)
