@@ -76,7 +76,12 @@ AUTOGRAD = "-autograd"
 
 #: The rows without a gradient option, so without an ``-autograd`` variant: FNOpt and the
 #: DCT-metric methods take the step problem's own gradient and Hessian products.
-NO_GRADIENT_OPTION = ("fnopt", "fnopt-line", "pgd", "pcg", "pcg-n")
+NO_GRADIENT_OPTION = ("fnopt", "fnopt-line", "pgd", "pcg", "pcg-n", "pcg-nc")
+
+#: The two-level row ``pcg-nc``: ``pcg-n`` plus the Galerkin coarse correction on a grid of
+#: this many vertices (longer side), rebuilt every :data:`TWO_LEVEL_EVERY` frames.
+TWO_LEVEL_COARSE = 16
+TWO_LEVEL_EVERY = 8
 
 #: "Equal error": the metric compared (mean over the rollout's measured frames). e_3D, not
 #: e_CD: e_CD x 1e3 with 10k samples has a sampling floor of about 0.13 that every converged
@@ -120,6 +125,12 @@ def _step(name: str, n: int, net=None, lr=None, fno: dict | None = None, **kw):
     if name == "pcg-n":             # PCG with the classical directions of normal-config weights
         split = net.config.normal_split if net is not None else 0
         return lambda p, a0: solvers.solve_pcg(p, n, normal=True, split=split)
+    if name == "pcg-nc":            # pcg-n + the two-level coarse correction (fnopt.twolevel)
+        split = net.config.normal_split if net is not None else 0
+        coarse = {}                 # the coarse space between frames
+        return lambda p, a0: solvers.solve_pcg(p, n, normal=True, split=split,
+                                               coarse=TWO_LEVEL_COARSE,
+                                               coarse_every=TWO_LEVEL_EVERY, memory=coarse)
     if name == "lbfgs":
         return lambda p, a0: solvers.solve_lbfgs(p, n, step=lr or 1.0,
                                                  **{"fused_grad": True, **kw})

@@ -144,8 +144,11 @@ def solve_pcg(p: StepProblem, iters: int, k_eff: float = 1.0, a0=None,
 
 
 def _coarse_space(p: StepProblem, hvp, k: int, every: int, memory: dict | None):
-    """:func:`galerkin_space` of ``p``, or the one kept in ``memory`` while it is younger
-    than ``every`` calls and of the same grid and handles."""
+    """:func:`galerkin_space` of ``p``, or the one kept in ``memory``.
+
+    The kept one serves while it is younger than ``every`` calls and its grid and handles are
+    ``p``'s (else it is rebuilt and kept).
+    """
     if memory is None:
         return galerkin_space(p, hvp, k)
     kept = memory.get("coarse")

@@ -137,6 +137,10 @@ def register_simulate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fno-every", type=int, default=1,
                    help="fnopt: the FNO's proposal on every E-th iteration only, the classical "
                    "step between (E >= --iters: the first iteration only; default 1)")
+    p.add_argument("--coarse", type=int, default=0,
+                   help="pcg: add the two-level coarse correction (the step's Hessian on the "
+                   "grid whose longer side has K vertices, rebuilt every 8 frames; 0: off; "
+                   "default 0)")
     p.add_argument("--lr", type=float, default=None,
                    help="gd/adam step size, lbfgs step scale (default gd: per sheet the "
                    "stable step from a curvature bound, adam 0.1, lbfgs 1.0)")
@@ -171,7 +175,7 @@ def run_simulate(args: argparse.Namespace) -> int:
                     iters=args.iters, lr=args.lr,
                     material=Material(args.stretch, args.shear, args.bend),
                     repulsion=args.repulsion, fno_coarse=args.fno_coarse,
-                    recycle=args.recycle, fno_every=args.fno_every)
+                    recycle=args.recycle, fno_every=args.fno_every, coarse=args.coarse)
     model = None
     if args.weights is not None:
         if s.optimizer != "fnopt":

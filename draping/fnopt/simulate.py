@@ -23,6 +23,7 @@ from .coarse import check_grid_option
 from .handles import DT, check_motion
 from .rollouts import Rollout, rollout
 from .settings import OPTIMIZERS
+from .twolevel import check_coarse
 
 __all__ = ["SimSettings", "OPTIMIZERS", "DEFAULT_LR", "PCG_NORMAL_SPLIT", "step_function", "run",
            "e_cd", "frame_metrics", "reference_rollout", "write_outputs"]
@@ -39,6 +40,10 @@ DEFAULT_LR = {"gd": None, "adam": 0.1, "lbfgs": 1.0}
 #: ``benchmarks/bm_fnopt.py`` and session 14's equal-cost control.
 PCG_NORMAL_SPLIT = 4
 
+#: ``optimizer="pcg"`` with ``coarse``: the two-level coarse space is rebuilt every this many
+#: frames (``solve_pcg(coarse_every=...)``; its build costs about 20 iterations at 64x64).
+PCG_COARSE_EVERY = 8
+
 
 @dataclass
 class SimSettings:
@@ -52,6 +57,9 @@ class SimSettings:
     ``fno_every``-th iteration only, the classical step between (``solve_fnopt(fno_every=...)``).
     ``optimizer="pcg"``: FNOpt's step without the FNO, ``iters`` iterations of PCG with the
     normal directions (:data:`PCG_NORMAL_SPLIT`); ``lr`` is not used (exact subspace steps).
+    ``coarse`` (``pcg`` only; 0, the default: off): add the two-level coarse correction on the
+    grid whose longer side has this many vertices (``solve_pcg(coarse=...)``,
+    :mod:`draping.fnopt.twolevel`), rebuilt every :data:`PCG_COARSE_EVERY` frames.
     """
 
     res: tuple = (64, 64)
@@ -69,6 +77,7 @@ class SimSettings:
     fno_coarse: int = 0
     recycle: int = 0
     fno_every: int = 1
+    coarse: int = 0
 
     def __post_init__(self) -> None:
         if self.optimizer not in OPTIMIZERS:
@@ -87,6 +96,10 @@ class SimSettings:
 
         check_recycle(self.recycle)
         check_fno_every(self.fno_every)
+        check_coarse(self.coarse)
+        if self.coarse and self.optimizer != "pcg":
+            raise ValueError(f"coarse: {self.coarse} needs optimizer 'pcg', got "
+                             f"{self.optimizer!r}")
 
     def sheet(self) -> cloth.Sheet:
         """The grid sheet."""
@@ -95,7 +108,7 @@ class SimSettings:
     def key(self) -> dict:
         """What the reference rollout depends on."""
         d = asdict(self)
-        for k in ("optimizer", "iters", "lr", "fno_coarse", "recycle", "fno_every"):
+        for k in ("optimizer", "iters", "lr", "fno_coarse", "recycle", "fno_every", "coarse"):
             d.pop(k)
         return d
 
@@ -107,7 +120,8 @@ def step_function(settings: SimSettings, model=None):
     up to rounding, 2.7x cheaper L-BFGS iterations at 64x64; autograd where it does not apply,
     e.g. with repulsion), as FNOpt's inference and ``benchmarks/bm_fnopt.py``'s classical rows
     do, so that ``polygeo simulate`` and the benchmark time the same solver. ``pcg``:
-    ``solve_pcg(normal=True, split=PCG_NORMAL_SPLIT)``. Every solver but the reference runs under
+    ``solve_pcg(normal=True, split=PCG_NORMAL_SPLIT)`` (with ``coarse``: the two-level
+    correction too, its coarse space kept across the rollout's frames). Every solver but the reference runs under
     ``torch.inference_mode`` where the step problem needs no autograd
     (:func:`~draping.fnopt.step_problem.autograd_free_call`).
     """
@@ -122,6 +136,10 @@ def step_function(settings: SimSettings, model=None):
         return lambda p, a0: solve_fnopt(net, p, n, coarse_res=k, recycle=r, memory=memory,
                                          fno_every=e)
     if name == "pcg":
+        k, memory = settings.coarse, {}
+        if k:
+            return lambda p, a0: solve_pcg(p, n, normal=True, split=PCG_NORMAL_SPLIT, coarse=k,
+                                           coarse_every=PCG_COARSE_EVERY, memory=memory)
         return lambda p, a0: solve_pcg(p, n, normal=True, split=PCG_NORMAL_SPLIT)
     lr = settings.lr if settings.lr is not None else DEFAULT_LR[name]
     if name == "lbfgs":

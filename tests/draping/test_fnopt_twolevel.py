@@ -182,3 +182,24 @@ def test_bad_coarse_options_get_clear_errors():
 
     with pytest.raises(ValueError, match="not finite"):
         twolevel.galerkin_space(p, NaNProducts, 4)
+
+
+def test_simulate_pcg_with_coarse():
+    """``polygeo simulate --optimizer pcg --coarse K``: the settings' step is the two-level
+    solve (its coarse space kept across frames), not the plain one; other optimisers refuse
+    it; the reference's key does not depend on it."""
+    from draping.fnopt.simulate import PCG_COARSE_EVERY, SimSettings, step_function
+
+    s = SimSettings(res=(10, 12), optimizer="pcg", iters=3, coarse=4)
+    p = random_problem(10, torch.float32, 4)
+    mem = {}
+    want = classical.solve_pcg(p, 3, normal=True, split=4, coarse=4,
+                               coarse_every=PCG_COARSE_EVERY, memory=mem)
+    assert torch.equal(step_function(s)(p, None), want)
+    plain = step_function(SimSettings(res=(10, 12), optimizer="pcg", iters=3))(p, None)
+    assert not torch.equal(plain, want)
+    assert s.key() == SimSettings(res=(10, 12), optimizer="pcg", iters=3).key()
+    with pytest.raises(ValueError, match="coarse"):
+        SimSettings(optimizer="fnopt", coarse=4)
+    with pytest.raises(ValueError, match="coarse"):
+        SimSettings(optimizer="pcg", coarse=1)
