@@ -121,8 +121,8 @@ def step_function(settings: SimSettings, model=None):
     e.g. with repulsion), as FNOpt's inference and ``benchmarks/bm_fnopt.py``'s classical rows
     do, so that ``polygeo simulate`` and the benchmark time the same solver. ``pcg``:
     ``solve_pcg(normal=True, split=PCG_NORMAL_SPLIT)`` (with ``coarse``: the two-level
-    correction too, its coarse space kept across the rollout's frames). Every solver but the reference runs under
-    ``torch.inference_mode`` where the step problem needs no autograd
+    correction too, its coarse space kept across the rollout's frames). Every solver but the
+    reference runs under ``torch.inference_mode`` where the step problem needs no autograd
     (:func:`~draping.fnopt.step_problem.autograd_free_call`).
     """
     name, n = settings.optimizer, settings.iters
