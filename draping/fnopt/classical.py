@@ -17,6 +17,7 @@ import torch
 
 from polygeo.checks import check_int
 
+from .coarse import check_grid_option
 from .preconditioners import (
     curvature_bound,
     laplace_preconditioner,
@@ -24,7 +25,7 @@ from .preconditioners import (
     normal_preconditioner,
 )
 from .step_problem import StepProblem, autograd_free_call
-from .twolevel import check_coarse, coarse_correction, galerkin_space
+from .twolevel import coarse_correction, galerkin_space
 
 __all__ = ["solve_gd", "solve_pgd", "solve_pcg", "solve_adam", "solve_lbfgs",
            "solve_lbfgs_wolfe", "solve_reference", "CLASSICAL", "REFERENCE_TOL"]
@@ -120,10 +121,10 @@ def solve_pcg(p: StepProblem, iters: int, k_eff: float = 1.0, a0=None,
     Raises
     ------
     TypeError, ValueError
-        If ``coarse`` is not 0 or an int >= 2 (:func:`draping.fnopt.twolevel.check_coarse`),
+        If ``coarse`` is not 0 or an int >= 2 (:func:`draping.fnopt.coarse.check_grid_option`),
         ``coarse_every`` not an int >= 1, or ``coarse_every > 1`` without ``memory``.
     """
-    check_coarse(coarse)
+    check_grid_option(coarse, "coarse")
     check_int(coarse_every, "coarse_every", low=1)
     if coarse_every > 1 and memory is None:
         raise ValueError(f"coarse_every: {coarse_every} needs a memory dict (got None)")

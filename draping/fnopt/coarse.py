@@ -24,7 +24,10 @@ __all__ = ["check_grid_option", "coarse_shape", "interpolation_matrix", "coarse_
 
 
 def check_grid_option(value, name: str) -> int:
-    """An FNO-grid option (``coarse_res``, ``stiffness_res``, ``fno_coarse``): 0 or an int >= 2.
+    """A coarse-grid option (``coarse_res``, ``fno_coarse``, ``coarse`` ...): 0 or an int >= 2.
+
+    The FNO's grid (``coarse_res``, ``stiffness_res``, ``fno_coarse``) or the two-level
+    control's (``coarse``, :mod:`draping.fnopt.twolevel`).
 
     0 means off; otherwise the number of vertices of the coarse grid's longer side.
 

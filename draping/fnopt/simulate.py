@@ -23,7 +23,6 @@ from .coarse import check_grid_option
 from .handles import DT, check_motion
 from .rollouts import Rollout, rollout
 from .settings import OPTIMIZERS
-from .twolevel import check_coarse
 
 __all__ = ["SimSettings", "OPTIMIZERS", "DEFAULT_LR", "PCG_NORMAL_SPLIT", "step_function", "run",
            "e_cd", "frame_metrics", "reference_rollout", "write_outputs"]
@@ -96,7 +95,7 @@ class SimSettings:
 
         check_recycle(self.recycle)
         check_fno_every(self.fno_every)
-        check_coarse(self.coarse)
+        check_grid_option(self.coarse, "coarse")
         if self.coarse and self.optimizer != "pcg":
             raise ValueError(f"coarse: {self.coarse} needs optimizer 'pcg', got "
                              f"{self.optimizer!r}")

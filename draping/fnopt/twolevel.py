@@ -33,26 +33,10 @@ from polygeo.checks import check_int
 from .coarse import coarse_shape, interpolation_matrix
 from .step_problem import StepProblem
 
-__all__ = ["CoarseSpace", "check_coarse", "probe_spacing", "galerkin_space",
-           "coarse_correction"]
+__all__ = ["CoarseSpace", "probe_spacing", "galerkin_space", "coarse_correction"]
 
 #: How many fine vertices apart the step's Hessian couples two vertices (bending's stencil).
 HESSIAN_REACH = 2
-
-
-def check_coarse(value, name: str = "coarse") -> int:
-    """A coarse-space option: 0 (off) or the coarse grid's longer side, an int >= 2.
-
-    Raises
-    ------
-    TypeError
-        If ``value`` is not an int.
-    ValueError
-        If ``value`` is negative or 1.
-    """
-    if check_int(value, name, low=0) == 1:
-        raise ValueError(f"{name}: expected 0 (off) or an int >= 2, got 1")
-    return value
 
 
 def probe_spacing(fine: int, coarse: int, reach: int = HESSIAN_REACH) -> int:
@@ -141,11 +125,9 @@ def galerkin_space(p: StepProblem, hvp, k: int) -> CoarseSpace:
     Raises
     ------
     TypeError, ValueError
-        If ``k`` is not an int >= 2 (:func:`check_coarse`); from :func:`_factor`.
+        If ``k`` is not an int >= 2; from :func:`_factor`.
     """
-    check_coarse(k, "k")
-    if k < 2:
-        raise ValueError(f"k: expected an int >= 2, got {k}")
+    check_int(k, "k", low=2)
     b, h, w, _ = p.x_prev.shape
     hc, wc = coarse_shape(h, w, k)
     ph, pw = _hats(h, hc), _hats(w, wc)
