@@ -25,7 +25,7 @@ from .preconditioners import (
     normal_preconditioner,
 )
 from .step_problem import StepProblem, autograd_free_call
-from .twolevel import coarse_correction, galerkin_space
+from .twolevel import coarse_correction, kept_space
 
 __all__ = ["solve_gd", "solve_pgd", "solve_pcg", "solve_adam", "solve_lbfgs",
            "solve_lbfgs_wolfe", "solve_reference", "CLASSICAL", "REFERENCE_TOL"]
@@ -137,27 +137,11 @@ def solve_pcg(p: StepProblem, iters: int, k_eff: float = 1.0, a0=None,
         _, g, hvp = p.grad_hvp(a)
         dirs = [-pre(g) * p.free3, da] + (normal_directions(p, g, pn, split) if normal else [])
         if coarse:
-            space = space or _coarse_space(p, hvp, coarse, coarse_every, memory)
+            space = space or kept_space(p, hvp, coarse, coarse_every, memory)
             dirs.append(-coarse_correction(space, g))
         da = p.subspace_step(g, dirs, hvp)
         a = a + da
     return p.compose(a)
-
-
-def _coarse_space(p: StepProblem, hvp, k: int, every: int, memory: dict | None):
-    """:func:`galerkin_space` of ``p``, or the one kept in ``memory``.
-
-    The kept one serves while it is younger than ``every`` calls and its grid and handles are
-    ``p``'s (else it is rebuilt and kept).
-    """
-    if memory is None:
-        return galerkin_space(p, hvp, k)
-    kept = memory.get("coarse")
-    if (kept is None or kept[1] >= every or kept[2] != k or kept[3].shape != p.free.shape
-            or not torch.equal(kept[3], p.free)):
-        kept = (galerkin_space(p, hvp, k), 0, k, p.free.clone())
-    memory["coarse"] = (kept[0], kept[1] + 1, *kept[2:])
-    return kept[0]
 
 
 @_autograd_free(gradient_option=True)

@@ -34,6 +34,7 @@ from .solvers import (
     subspace_solve,
 )
 from .step_problem import autograd_free_call
+from .twolevel import coarse_correction, kept_space
 
 __all__ = ["FNOConfig", "SpectralConv2d", "FNO", "features", "constant_features",
            "fno_correction", "fno_direction", "fno_inputs",
@@ -537,7 +538,8 @@ def carried_basis(p: StepProblem, memory: dict) -> list:
 def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "subspace",
                 guard: bool = True, info: dict | None = None, coarse_res: int = 0,
                 stiffness_res: int = 0, recycle: int = 0,
-                memory: dict | None = None, fno_every: int = 1) -> torch.Tensor:
+                memory: dict | None = None, fno_every: int = 1, two_level: int = 0,
+                two_level_every: int = 1) -> torch.Tensor:
     """Algorithm 2: ``iters`` learned updates from ``a = 0``; returns the accelerations.
 
     ``step``: ``"subspace"`` (default, :func:`subspace_update`) or ``"line"`` (the exact
@@ -566,6 +568,11 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
     classical step (with a recycled basis, its span too), one FNO forward and one Hessian
     product cheaper, and skip the guard where their update is the classical one.
 
+    ``two_level`` (subspace step; 0, the default: off), ``two_level_every`` (with ``memory``):
+    the two-level coarse correction of :mod:`draping.fnopt.twolevel` on the grid whose longer
+    side has ``two_level`` vertices joins the classical directions (``solve_pcg``'s ``coarse``
+    and ``coarse_every``; the shipped weights were not trained with it).
+
     Where the step problem needs no autograd (:meth:`StepProblem.autograd_free`: the default
     fused closed forms) the solve runs under ``torch.inference_mode``: the same arithmetic bit
     for bit, without autograd's per-operation bookkeeping; the result (and ``memory``'s
@@ -577,9 +584,10 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
         On an unknown ``step``, bad ``coarse_res`` / ``stiffness_res`` (:func:`fno_inputs`), or
         either of them set with ``step="line"``; ``recycle`` out of range
         (:func:`check_recycle`), set with ``step="line"`` or without ``memory``;
-        ``fno_every`` < 1 or not 1 with ``step="line"``.
+        ``fno_every`` < 1 or not 1 with ``step="line"``; ``two_level`` negative or 1, set
+        with ``step="line"``, or ``two_level_every > 1`` without ``memory``.
     TypeError
-        If ``recycle`` or ``fno_every`` is not an int.
+        If ``recycle``, ``fno_every``, ``two_level`` or ``two_level_every`` is not an int.
     """
     if step not in STEPS:
         raise ValueError(f"step: expected one of {list(STEPS)}, got {step!r}")
@@ -593,8 +601,13 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
     if recycle and (step == "line" or memory is None):
         raise ValueError(f"recycle: {recycle} needs step='subspace' (got {step!r}) and a "
                          f"memory dict (got {type(memory).__name__})")
+    coarse.check_grid_option(two_level, "two_level")
+    check_int(two_level_every, "two_level_every", low=1)
+    if two_level and (step == "line" or (two_level_every > 1 and memory is None)):
+        raise ValueError(f"two_level: {two_level} needs step='subspace' (got {step!r}), and "
+                         f"two_level_every > 1 a memory dict (got {type(memory).__name__})")
     args = (model, p, iters, a0, step, guard, info, coarse_res, stiffness_res, recycle, memory,
-            fno_every)
+            fno_every, two_level, two_level_every)
     out = autograd_free_call(p, _solve, *args)   # no autograd bookkeeping where none is needed
     if recycle and p.autograd_free():            # normal tensors for the caller (in-place use)
         memory["basis"] = [w.clone() for w in memory["basis"]]
@@ -603,7 +616,8 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
 
 
 def _solve(model: FNO, p: StepProblem, iters: int, a0, step: str, guard: bool, info,
-           coarse_res: int, stiffness_res: int, recycle: int, memory, fno_every: int):
+           coarse_res: int, stiffness_res: int, recycle: int, memory, fno_every: int,
+           two_level: int = 0, two_level_every: int = 1):
     """:func:`solve_fnopt` after its checks (the same arguments, in its order)."""
     pre = laplace_preconditioner(p)
     pn = normal_preconditioner(p) if model.config.normal and step == "subspace" else None
@@ -621,11 +635,14 @@ def _solve(model: FNO, p: StepProblem, iters: int, a0, step: str, guard: bool, i
     val, g, hvp = p.grad_hvp(a)
     w = carried_basis(p, memory) if recycle else []
     extra = (w, p.hessian_products(w, hvp)) if w else None
-    updates = []
+    updates, space = [], None
     for k in range(iters):
         more = k < iters - 1              # a next iteration needs the gradient at a + dn
         z = pre(g) * p.free3
         zn = normal_directions(p, g, pn, model.config.normal_split) if pn is not None else None
+        if two_level:
+            space = space if k else kept_space(p, hvp, two_level, two_level_every, memory)
+            zn = (zn or []) + [-coarse_correction(space, g)]
         learned = k % fno_every == 0
         with torch.no_grad():
             dn, dn_pcg, _, m_pcg = subspace_update(model, p, g, hvp, z, z_prev, da, zn=zn,

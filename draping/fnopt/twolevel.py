@@ -33,7 +33,7 @@ from polygeo.checks import check_int
 from .coarse import coarse_shape, interpolation_matrix
 from .step_problem import StepProblem
 
-__all__ = ["CoarseSpace", "probe_spacing", "galerkin_space", "coarse_correction"]
+__all__ = ["CoarseSpace", "probe_spacing", "galerkin_space", "kept_space", "coarse_correction"]
 
 #: How many fine vertices apart the step's Hessian couples two vertices (bending's stencil).
 HESSIAN_REACH = 2
@@ -153,6 +153,23 @@ def galerkin_space(p: StepProblem, hvp, k: int) -> CoarseSpace:
         bands.append(chol)
         scales.append(torch.from_numpy(scale))
     return CoarseSpace(ph, pw, p.free.double(), bands, torch.stack(scales))
+
+
+def kept_space(p: StepProblem, hvp, k: int, every: int = 1,
+               memory: dict | None = None) -> CoarseSpace:
+    """:func:`galerkin_space` of ``p``, or the one kept in ``memory`` (a caller's dict).
+
+    The kept one (``memory["coarse"]``) serves while it is younger than ``every`` calls and its
+    grid and handles are ``p``'s; else it is rebuilt and kept. ``memory=None``: always built.
+    """
+    if memory is None:
+        return galerkin_space(p, hvp, k)
+    kept = memory.get("coarse")
+    if (kept is None or kept[1] >= every or kept[2] != k or kept[3].shape != p.free.shape
+            or not torch.equal(kept[3], p.free)):
+        kept = (galerkin_space(p, hvp, k), 0, k, p.free.clone())
+    memory["coarse"] = (kept[0], kept[1] + 1, *kept[2:])
+    return kept[0]
 
 
 def _factor(ab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -127,7 +127,7 @@ def test_coarse_space_is_reused_every_k_calls_and_rebuilt_on_new_handles(monkeyp
         built.append(1)
         return real(*args, **kw)
 
-    monkeypatch.setattr(classical, "galerkin_space", spy)
+    monkeypatch.setattr(twolevel, "galerkin_space", spy)
     p = random_problem(10, F64, 0)
     mem = {}
     outs = [classical.solve_pcg(p, 3, coarse=4, coarse_every=3, memory=mem) for _ in range(4)]
@@ -203,3 +203,28 @@ def test_simulate_pcg_with_coarse():
         SimSettings(optimizer="fnopt", coarse=4)
     with pytest.raises(ValueError, match="coarse"):
         SimSettings(optimizer="pcg", coarse=1)
+
+
+def test_fnopt_with_the_two_level_direction():
+    """``solve_fnopt(two_level=K)``: off is the default solve bit for bit; on, with a zeroed
+    FNO (proposal 0, so the learned step is the classical one), it is ``solve_pcg(coarse=K)``
+    with the same classical directions, iterate by iterate (up to float rounding of the
+    subspace solves: stated 1e-4 of the largest, float32); bad options raise."""
+    from fnopt_cases import tiny_fno
+
+    from draping.fnopt import model
+
+    p = random_problem(12, torch.float32, 6, layout="diagonal")
+    net = tiny_fno(normal=True, zero=True)
+    split = net.config.normal_split
+    assert torch.equal(model.solve_fnopt(net, p, 5, two_level=0), model.solve_fnopt(net, p, 5))
+    got = model.solve_fnopt(net, p, 5, two_level=4)
+    want = classical.solve_pcg(p, 5, normal=True, split=split, coarse=4)
+    assert float((got - want).abs().max()) <= 1e-4 * float(want.abs().max())
+    assert not torch.equal(got, model.solve_fnopt(net, p, 5))
+    with pytest.raises(ValueError, match="two_level"):
+        model.solve_fnopt(net, p, 2, two_level=1)
+    with pytest.raises(ValueError, match="two_level"):
+        model.solve_fnopt(net, p, 2, two_level=4, two_level_every=3)
+    with pytest.raises(ValueError, match="two_level"):
+        model.solve_fnopt(net, p, 2, step="line", two_level=4)
