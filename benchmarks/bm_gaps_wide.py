@@ -248,6 +248,7 @@ def chart(res: dict, path: Path) -> None:
             ax.scatter(m["mean"]["eps_e"], m["mean"]["eps_c"], s=40)
             ax.annotate(lab, (m["mean"]["eps_e"], m["mean"]["eps_c"]), fontsize=8,
                         xytext=(4, 4), textcoords="offset points")
+        ax.set_ylim(bottom=0.0)
         ax.set_xlabel("mean eps_e (%)")
         ax.set_ylabel("mean eps_c (%)")
         ax.set_title(f"{g}: {len(res['seeds'])} unseen random motions x {res['frames']} "
@@ -303,6 +304,16 @@ def score(specs: list[Spec], cases: list, quiet: bool = False) -> tuple[dict, di
     return out, sec
 
 
+def _recorded(word: str, models: list[str]) -> str:
+    """A command word for the record: a model item's file by :func:`polygeo.runs.record_path`."""
+    from polygeo.runs import record_path
+
+    if word not in models or "=" not in word:
+        return word
+    s = parse_spec(word)
+    return f"{s.label}={s.garment}:{record_path(s.source, ROOT)}"
+
+
 def _same_set(res: dict, seeds: list[int], frames: int, path: Path) -> dict:
     """``res`` if it was scored on ``seeds`` and ``frames``, else ``ValueError``."""
     if res.get("seeds") != seeds or res.get("frames") != frames:
@@ -355,7 +366,8 @@ def run(argv: list[str] | None = None) -> dict:
     if specs:
         res["runs"].append({
             "command": "python benchmarks/bm_gaps_wide.py " + record_command(
-                sys.argv[1:] if argv is None else argv, ROOT),
+                [_recorded(w, a.models) for w in (sys.argv[1:] if argv is None else argv)],
+                ROOT),
             "models": [f"{s.garment}/{s.label}" for s in specs],
             "cpu_seconds": time.process_time() - c0,
             "cpu_seconds_shared": sec["shared"], "cpu_seconds_models": sec["models"],
