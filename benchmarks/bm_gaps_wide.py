@@ -355,7 +355,7 @@ def run(argv: list[str] | None = None) -> dict:
         other = _same_set(json.loads(extra.read_text()), seeds, a.frames, extra)
         for g, rec in other["garments"].items():
             res["garments"].setdefault(g, {"models": {}})["models"].update(rec["models"])
-        res["runs"].extend(other["runs"])
+        res["runs"].extend(r for r in other["runs"] if r not in res["runs"])
     env = environment()
     c0 = time.process_time()
     scored, sec = score(specs, cases, a.quiet) if specs else ({}, {"shared": 0.0,

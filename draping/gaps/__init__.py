@@ -26,6 +26,7 @@ from polygeo.lazy import attach
 if TYPE_CHECKING:
     from .average import WeightAverage
     from .data import (
+        VALIDATION_RANDOM_SEEDS,
         Case,
         Sequence,
         ShapeCase,
@@ -42,7 +43,6 @@ if TYPE_CHECKING:
         training_sequences,
         validation_cases,
         validation_random_cases,
-        VALIDATION_RANDOM_SEEDS,
     )
     from .infer import (
         Drape,

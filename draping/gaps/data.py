@@ -282,8 +282,9 @@ VALIDATION_RANDOM_SEEDS = tuple(range(906, 966))
 
 
 def validation_random_cases(frames: int = 60) -> list[Case]:
-    """Sixty random motions for choosing settings: :func:`random_cases` of
-    :data:`VALIDATION_RANDOM_SEEDS` (906-965), each on its own seed's shape.
+    """Sixty random motions for choosing settings, each on its own seed's shape.
+
+    :func:`random_cases` of :data:`VALIDATION_RANDOM_SEEDS` (906-965).
 
     The six :func:`validation_cases` gate at the size of one vertex-frame's noise; these judge
     a model on the motion type (``random``) where the dress's eps_e is highest.

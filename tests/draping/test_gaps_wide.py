@@ -92,6 +92,10 @@ def test_add_combines_records_without_scoring(wide, record, tmp_path):
                     str(out), "--quiet", "--add", str(record)])
     before = json.loads(record.read_text())
     assert res["garments"] == before["garments"] and res["runs"] == before["runs"]
+    # records that share runs (one --merge'd from the other): each run is kept once
+    twice = wide.run(["--seeds", SEEDS, "--skip", "", "--frames", str(FRAMES), "--out",
+                      str(out), "--quiet", "--add", str(record), str(record)])
+    assert twice["runs"] == before["runs"]
     with pytest.raises(ValueError, match="other seeds or frames"):
         wide.run(["--seeds", SEEDS, "--skip", "", "--frames", "5", "--out",
                   str(tmp_path / "b.json"), "--quiet", "--add", str(record)])
