@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import sys
 from pathlib import Path
 
@@ -13,12 +12,8 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
-def bm():
-    spec = importlib.util.spec_from_file_location("bm_fnopt", ROOT / "benchmarks" / "bm_fnopt.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("bm_fnopt", mod)
-    spec.loader.exec_module(sys.modules["bm_fnopt"])
-    return sys.modules["bm_fnopt"]
+def bm(script):
+    return script("benchmarks/bm_fnopt.py")
 
 
 def _runs(pairs):
@@ -81,11 +76,8 @@ def test_merge_general_replaces_only_the_rows_run_again(bm):
     assert bm.merge_general(dict(old, frames=30), rec) is rec
 
 
-def test_parsimony_pick_takes_the_smallest_model_within_ten_percent():
-    spec = importlib.util.spec_from_file_location("fnopt_sweep",
-                                                  ROOT / "benchmarks" / "fnopt_sweep.py")
-    sw = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(sw)
+def test_parsimony_pick_takes_the_smallest_model_within_ten_percent(script):
+    sw = script("benchmarks/fnopt_sweep.py")
     runs = [{"parameters": 4, "val_subopt": 0.040}, {"parameters": 1, "val_subopt": 0.034},
             {"parameters": 2, "val_subopt": 0.0329}, {"parameters": 9, "val_subopt": 0.030},
             {"parameters": 0, "val_subopt": float("nan")}]
@@ -177,12 +169,9 @@ def test_screen_case_keeps_a_stable_case_and_its_threshold_bites(bm, tmp_path, m
     assert not dropped["kept"] and dropped["r1_e_cd"] > 0.0 and "r2_e_cd" not in dropped
 
 
-def test_sweep_rows_rebuild_the_step_rule_they_were_trained_with(tmp_path):
+def test_sweep_rows_rebuild_the_step_rule_they_were_trained_with(tmp_path, script):
     """A row records its step rule; older rows (no field) were trained without the normal."""
-    spec = importlib.util.spec_from_file_location("fnopt_sweep",
-                                                  ROOT / "benchmarks" / "fnopt_sweep.py")
-    sw = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(sw)
+    sw = script("benchmarks/fnopt_sweep.py")
     from draping.fnopt.model import FNO, FNOConfig
 
     cfg = FNOConfig(4, 2, 1, 8, True, 4)

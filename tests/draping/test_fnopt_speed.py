@@ -224,25 +224,10 @@ def test_32x32_shipped_solve_with_the_fast_paths_equals_the_torch_one():
     assert torch.allclose(got, want, rtol=1e-9, atol=1e-9 * float(want.abs().max()))
 
 
-def _bm():
-    """``benchmarks/bm_fnopt.py`` as a module (loaded once)."""
-    import importlib.util
-    import sys
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[2] / "benchmarks" / "bm_fnopt.py"
-    spec = importlib.util.spec_from_file_location("bm_fnopt", path)
-    sys.modules.setdefault("bm_fnopt", importlib.util.module_from_spec(spec))
-    bm = sys.modules["bm_fnopt"]
-    if not hasattr(bm, "_step"):
-        spec.loader.exec_module(bm)
-    return bm
-
-
-def test_benchmark_gives_the_classical_rows_the_fused_gradient(monkeypatch):
+def test_benchmark_gives_the_classical_rows_the_fused_gradient(monkeypatch, script):
     """``bm_fnopt._step``: ``lbfgs`` (and GD, Adam, our L-BFGS variants) with the fused
     gradient, ``<name>-autograd`` with autograd's; the strong-Wolfe rows unchanged."""
-    bm = _bm()
+    bm = script("benchmarks/bm_fnopt.py")
     seen = []
 
     def spy(name):

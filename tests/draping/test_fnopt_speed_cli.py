@@ -3,9 +3,7 @@ gradient (the fused closed form), and the benchmark's ``-autograd`` row names ar
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -21,13 +19,8 @@ F64 = torch.float64
 
 
 @pytest.fixture(scope="module")
-def bm():
-    spec = importlib.util.spec_from_file_location("bm_fnopt", ROOT / "benchmarks" / "bm_fnopt.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("bm_fnopt", mod)
-    if not hasattr(sys.modules["bm_fnopt"], "_step"):
-        spec.loader.exec_module(sys.modules["bm_fnopt"])
-    return sys.modules["bm_fnopt"]
+def bm(script):
+    return script("benchmarks/bm_fnopt.py")
 
 
 def _problem(n=9, dtype=torch.float32, seed=0):

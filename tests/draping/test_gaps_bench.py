@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -12,22 +10,14 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def _load(name: str, path: Path):
-    spec = importlib.util.spec_from_file_location(name, path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault(name, mod)  # dataclasses look their module up
-    spec.loader.exec_module(sys.modules[name])
-    return sys.modules[name]
+@pytest.fixture(scope="module")
+def ev(script):
+    return script("datasets/make_gaps_eval.py")
 
 
 @pytest.fixture(scope="module")
-def ev():
-    return _load("make_gaps_eval", ROOT / "datasets" / "make_gaps_eval.py")
-
-
-@pytest.fixture(scope="module")
-def bm():
-    return _load("bm_gaps", ROOT / "benchmarks" / "bm_gaps.py")
+def bm(script):
+    return script("benchmarks/bm_gaps.py")
 
 
 def test_eval_cases_are_held_back_from_training(ev):
@@ -229,11 +219,11 @@ def test_strip_skips_garments_without_a_case_in_the_run(bm, tmp_path):
     assert not (tmp_path / "s.png").exists()
 
 
-def test_contacts_body_parts_and_inside_counts():
+def test_contacts_body_parts_and_inside_counts(script):
     """``gaps_contacts``: bones map to their side's limb or the torso; on a garment with two
     vertices pushed into the body (one deep, one on the skin's inner side of a thigh) the
     counts, the part and the depth are those of the construction."""
-    gc = _load("gaps_contacts", ROOT / "benchmarks" / "gaps_contacts.py")
+    gc = script("benchmarks/gaps_contacts.py")
     assert gc.body_part("upperleg01.L") == "legL" and gc.body_part("pelvis.R") == "legR"
     assert gc.body_part("upperarm02.R") == "armR" and gc.body_part("clavicle.L") == "armL"
     assert gc.body_part("spine04") == "torso" and gc.body_part("head") == "torso"
@@ -262,7 +252,7 @@ def test_contacts_body_parts_and_inside_counts():
     assert r["per_frame"] == [1, 0]
 
 
-def test_span_optimum_rebuilds_the_model_output_and_lowers_the_loss():
+def test_span_optimum_rebuilds_the_model_output_and_lowers_the_loss(script):
     """``gaps_contacts.span_optimum``: the garment rebuilt from the network's own output-basis
     coefficients at a frame is the model's drape there (to float32 rounding); minimising the
     training loss over those coefficients does not raise it; the inside count before is the
@@ -276,7 +266,7 @@ def test_span_optimum_rebuilds_the_model_output_and_lowers_the_loss():
     from draping.collision import MeshQuery
     from draping.gaps import Case, drape_case, load_model
 
-    gc = _load("gaps_contacts", ROOT / "benchmarks" / "gaps_contacts.py")
+    gc = script("benchmarks/gaps_contacts.py")
     torch.set_num_threads(1)
     body = AnnyBody.load()
     model = load_model("tshirt")
@@ -296,13 +286,13 @@ def test_span_optimum_rebuilds_the_model_output_and_lowers_the_loss():
         gc.span_optimum(model, d, body, case, 4)
 
 
-def test_contacts_judge_a_model_by_its_own_training_loss():
+def test_contacts_judge_a_model_by_its_own_training_loss(script):
     """``gaps_contacts.train_settings_of``: the loss re-solved at a frame uses the settings the
     model's record holds (the shipped dress: k_c = 1e5, not the default 1e4); a model without
     a record gets the defaults with its own model settings."""
     from draping.gaps import TrainSettings, load_model
 
-    gc = _load("gaps_contacts", ROOT / "benchmarks" / "gaps_contacts.py")
+    gc = script("benchmarks/gaps_contacts.py")
     dress = load_model("dress")
     rec = dress.record["training"]["settings"]
     ts = gc.train_settings_of(dress)
@@ -313,15 +303,14 @@ def test_contacts_judge_a_model_by_its_own_training_loss():
     assert gc.train_settings_of(dress) == TrainSettings(model=dress.settings)
 
 
-def test_shipped_section_replaces_only_the_shipped_row(tmp_path, monkeypatch):
+def test_shipped_section_replaces_only_the_shipped_row(tmp_path, monkeypatch, script):
     """``--sections shipped``: merged into a record, the re-scored shipped row replaces the
     old one (keeping its label and budget mark) and every other row, the given ones
     included, stays; a re-score against other references, or a record without a shipped
     row, is refused."""
     import json
 
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    rec = _load("bm_gaps_record", ROOT / "benchmarks" / "bm_gaps_record.py")
+    rec = script("benchmarks/bm_gaps_record.py")
     ref = {"eps_e_mean": 1.5, "eps_a_mean": 2.0, "eps_c_mean": 0.0}
     old = {"methods": {"dress": {
         "models": [{"label": "gaps", "eps_c_mean": 0.01},

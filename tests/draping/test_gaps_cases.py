@@ -3,7 +3,6 @@ random motion on the shape drawn with that seed, seeds neither trained on nor he
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -13,14 +12,6 @@ import pytest
 from draping.gaps import held_out_cases, random_cases, random_shapes
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def _contacts_module():
-    spec = importlib.util.spec_from_file_location(
-        "gaps_contacts", ROOT / "benchmarks" / "gaps_contacts.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def test_random_cases_are_each_seeds_motion_on_its_own_shape():
@@ -44,8 +35,8 @@ def test_random_cases_bad_input():
         random_cases([509], frames=2)
 
 
-def test_parse_seeds():
-    gc = _contacts_module()
+def test_parse_seeds(script):
+    gc = script("benchmarks/gaps_contacts.py")
     assert gc.parse_seeds("506-510") == [506, 507, 508, 509, 510]
     assert gc.parse_seeds("509, 642,811") == [509, 642, 811]
     assert gc.parse_seeds("538-542", "540") == [538, 539, 541, 542]
@@ -54,8 +45,8 @@ def test_parse_seeds():
             gc.parse_seeds(bad)
 
 
-def test_screen_writes_its_seeds(tmp_path):
-    gc = _contacts_module()
+def test_screen_writes_its_seeds(tmp_path, script):
+    gc = script("benchmarks/gaps_contacts.py")
     assert gc.main(["--models", "dress", "--cases", "random", "--seeds", "508-510",
                     "--skip", "509", "--frames", "3", "--out", str(tmp_path)]) == 0
     res = json.loads((tmp_path / "gaps_contacts_dress_random.json").read_text())

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import sys
 from pathlib import Path
@@ -16,17 +15,9 @@ ROOT = Path(__file__).resolve().parents[2]
 SEEDS, FRAMES = "642,720", 15
 
 
-def _load(name: str, path: Path):
-    spec = importlib.util.spec_from_file_location(name, path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault(name, mod)
-    spec.loader.exec_module(sys.modules[name])
-    return sys.modules[name]
-
-
 @pytest.fixture(scope="module")
-def wide():
-    return _load("bm_gaps_wide", ROOT / "benchmarks" / "bm_gaps_wide.py")
+def wide(script):
+    return script("benchmarks/bm_gaps_wide.py")
 
 
 @pytest.fixture(scope="module")

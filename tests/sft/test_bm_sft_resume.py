@@ -2,24 +2,14 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def _bm():
-    spec = importlib.util.spec_from_file_location("bm_sft", ROOT / "benchmarks" / "bm_sft.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("bm_sft", mod)
-    spec.loader.exec_module(sys.modules["bm_sft"])
-    return sys.modules["bm_sft"]
-
-
-def test_resume_keeps_matching_runs_only():
-    bm = _bm()
+def test_resume_keeps_matching_runs_only(script):
+    bm = script("benchmarks/bm_sft.py")
     jobs = [
         ("polysft base", "polysft", {"order": 2, "window": 3}, "bend"),
         ("polysft base", "polysft", {"order": 2, "window": 3}, "fold"),
