@@ -77,6 +77,14 @@ class TrainSettings:
     them, ``L_ref`` after ``proposal_extra`` more); validation by the role's solve. Session 15:
     ``K = 19`` from the shipped weights did not beat PCG at equal cost nor the shipped weights in
     the same role (docs/measurements/fnopt.md), so the default stays 0.
+
+    ``two_level`` ``K`` (0, the shipped weights: off): the pool step's subspace also holds the
+    two-level coarse correction ``-P A_c^-1 P^T g`` (:mod:`draping.fnopt.twolevel`; the
+    Galerkin space of each pool sheet's step on the grid whose longer side has ``K`` vertices,
+    built at ``a = 0`` of its current frame and kept while it stays on that frame), as
+    ``solve_fnopt(two_level=K)`` does at inference; the validation solve uses it too. The FNO
+    then only has to learn what the coarse space and the classical directions leave. Not with
+    ``proposal_iters`` or ``rollout_steps``.
     """
 
     width: int = 16
@@ -109,6 +117,7 @@ class TrainSettings:
     init: str = ""
     proposal_iters: int = 0
     proposal_extra: int = 10
+    two_level: int = 0
     seed: int = 0
     eval_every: int = 1000
     checkpoint_every: int = 500
@@ -120,6 +129,12 @@ class TrainSettings:
             check_int(getattr(self, name), name, low=0)
         for name in ("rollout_frames", "rollout_iters", "rollout_batch", "proposal_extra"):
             check_int(getattr(self, name), name, low=1)
+        check_int(self.two_level, "two_level", low=0)
+        if self.two_level == 1 or (self.two_level and (self.proposal_iters or
+                                                       self.rollout_steps)):
+            raise ValueError(f"two_level: expected 0 or an int >= 2, and not with proposal_iters "
+                             f"or rollout_steps, got {self.two_level} (proposal_iters "
+                             f"{self.proposal_iters}, rollout_steps {self.rollout_steps})")
         if self.step_rule != "subspace":
             raise ValueError(f"step_rule: expected 'subspace', got {self.step_rule!r}")
         if self.handles not in HANDLE_DISTRIBUTIONS:

@@ -46,9 +46,10 @@ from .solvers import (
 )
 from .tbptt import rollout_train_step
 from .train_proposal import proposal_train_step
+from .twolevel import coarse_correction, galerkin_space
 
 __all__ = ["TrainSettings", "HANDLE_DISTRIBUTIONS", "random_handles", "folding_pair", "Pool",
-           "train", "initial_weights", "validation_set", "evaluate"]
+           "train", "initial_weights", "validation_set", "evaluate", "coarse_directions"]
 
 
 def _uniform(gen: torch.Generator) -> float:
@@ -315,6 +316,29 @@ def initial_weights(s: TrainSettings, model: FNO) -> None:
     model.load_state_dict(src.state_dict())
 
 
+def coarse_directions(pool: Pool, ids: torch.Tensor, g: torch.Tensor, k: int) -> list:
+    """``[-P A_c^-1 P^T g]``: the two-level direction of pool entries ``ids`` (a list of one).
+
+    ``g``: their gradients ``(B, r, r, 3)``. Each entry's Galerkin space
+    (:func:`draping.fnopt.twolevel.galerkin_space`, grid of ``k`` vertices a side) is built at
+    ``a = 0`` of its current frame from its own step problem (closed-form products, one sheet
+    at a time, so it does not depend on the batch) and kept in ``pool.coarse_kept`` while the
+    entry stays on that frame (keyed by its time, size and duration); the kept spaces are not
+    checkpointed, and rebuilding one gives the same space (it depends on the frame's state
+    only). Returns ``(B, r, r, 3)`` in ``g``'s dtype, zero at handles.
+    """
+    kept = pool.__dict__.setdefault("coarse_kept", {})
+    out = []
+    for j, i in enumerate(ids.tolist()):
+        key = (float(pool.t[i]), float(pool.size[i]), float(pool.duration[i]), k)
+        if i not in kept or kept[i][0] != key:
+            pi, _ = pool.problem(torch.tensor([i]), analytic_hvp=True)
+            _, _, hvp = pi.grad_hvp(torch.zeros_like(pi.x_prev))
+            kept[i] = (key, galerkin_space(pi, hvp, k))
+        out.append(coarse_correction(kept[i][1], g[j:j + 1]))
+    return [-torch.cat(out)]
+
+
 def train_step(model: FNO, opt, pool: Pool, s: TrainSettings, step: int) -> float:
     """One meta-training step on a random batch of the pool; returns the mean loss."""
     ids = torch.randperm(s.pool, generator=pool.gen)[:s.batch]
@@ -325,6 +349,8 @@ def train_step(model: FNO, opt, pool: Pool, s: TrainSettings, step: int) -> floa
     z = pre(g) * p.free
     zn = normal_directions(p, g, normal_preconditioner(p), s.normal_split) if s.normal \
         else None
+    if s.two_level:
+        zn = (zn or []) + coarse_directions(pool, ids, g, s.two_level)
     da = subspace_update(model, p, g, hvp, z, pool.r_prev[ids], pool.da[ids],
                          create_graph=True, zn=zn)[0]
     a_new = a + da
@@ -405,14 +431,16 @@ def validation_set(res: int = 32, frames: int = 20) -> list[dict]:
     return out
 
 
-def evaluate(model: FNO, val: list[dict], iters: int = 10, fno_every: int = 1) -> float:
+def evaluate(model: FNO, val: list[dict], iters: int = 10, fno_every: int = 1,
+             two_level: int = 0) -> float:
     """Mean relative sub-optimality ``(L(a_N) - L*) / (L(0) - L*)`` over the validation set.
 
-    ``iters``, ``fno_every``: the solve's (:func:`draping.fnopt.model.solve_fnopt`).
+    ``iters``, ``fno_every``, ``two_level``: the solve's
+    (:func:`draping.fnopt.model.solve_fnopt`; ``two_level`` built for each step).
     """
     errs = []
     for c in val:
-        a = solve_fnopt(model, c["problem"], iters, fno_every=fno_every)
+        a = solve_fnopt(model, c["problem"], iters, fno_every=fno_every, two_level=two_level)
         l_n = float(c["p64"].loss(a.double())[0])
         errs.append(max(l_n - c["l_star"], 0.0) / max(c["l_zero"] - c["l_star"], 1e-30))
     return float(sum(errs) / len(errs))
@@ -504,7 +532,9 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
         if step % 50 == 0:
             bar.set_postfix(loss=f"{ema:.3f}")
         if step % s.eval_every == 0 or step == total:
-            v = evaluate(model, val, *eval_solve) if eval_solve else evaluate(model, val)
+            v = evaluate(model, val, *eval_solve) if eval_solve else \
+                evaluate(model, val, two_level=s.two_level) if s.two_level else \
+                evaluate(model, val)
             rec = {"step": step, "phase": "pool" if step <= s.steps else "rollout",
                    "loss_ema": ema, "val_subopt": v,
                    "minutes": (time.perf_counter() - t0) / 60,
