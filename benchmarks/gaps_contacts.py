@@ -71,6 +71,7 @@ def contacts(drape, body, parts: np.ndarray, pinch: float, query=None) -> dict:
         raise ValueError(f"query: expected {x.shape[0]} frames, got {len(query)}")
     q = MeshQuery(bv[0], body.faces) if query is None else None
     per_part = {p: {"inside": 0, "pinched": 0} for p in PARTS}
+    others: dict = {}  # per part, the body less that part: built once, refitted per frame
     depth, frames, verts, counts = [], [], set(), []
     for t in range(x.shape[0]):
         if query is None:
@@ -90,7 +91,11 @@ def contacts(drape, body, parts: np.ndarray, pinch: float, query=None) -> dict:
             sel = ins[parts[f[ins]] == p]
             if sel.size == 0:
                 continue
-            other = MeshQuery(bv[t], torch.as_tensor(faces[parts != p]))
+            other = others.get(p)
+            if other is None:
+                other = others[p] = MeshQuery(bv[t], torch.as_tensor(faces[parts != p]))
+            else:
+                other.update(bv[t])
             do = np.abs(np.asarray(other.query(x[t][sel], max_distance=2 * pinch).distance))
             per_part[p]["inside"] += int(sel.size)
             per_part[p]["pinched"] += int((do < pinch).sum())

@@ -252,6 +252,52 @@ def test_contacts_body_parts_and_inside_counts(script):
     assert r["per_frame"] == [1, 0]
 
 
+def test_contacts_pinch_counts_equal_a_fresh_query_per_frame(script):
+    """``gaps_contacts.contacts`` builds each "body less one part" query once and refits it per
+    frame; its pinch counts per part equal those of a query built afresh at every frame and
+    part (the construction it replaces), on a body that moves between frames, with inside
+    points on every part."""
+    import torch
+
+    from draping.body import AnnyBody
+    from draping.collision import MeshQuery
+    from draping.gaps.infer import Drape
+
+    gc = script("benchmarks/gaps_contacts.py")
+    body = AnnyBody.load()
+    parts = gc.face_parts(body)
+    faces = body.faces.numpy()
+    rest = body.rest()[0][0].double()
+    g = torch.Generator().manual_seed(0)
+    bv = torch.stack([rest, rest * 1.02 + torch.tensor([0.05, -0.02, 0.03], dtype=torch.float64),
+                      rest + 0.01 * torch.randn(rest.shape, generator=g, dtype=torch.float64)])
+    xs = []
+    for t in range(3):
+        q = MeshQuery(bv[t], body.faces)
+        idx = torch.randperm(rest.shape[0], generator=g)[:400]
+        n = q.query(bv[t][idx]).normal
+        xs.append(bv[t][idx] - 0.003 * n)  # 3 mm inside, mostly
+    d = Drape(torch.stack(xs).float(), bv.float(), None, {})
+    r = gc.contacts(d, body, parts, pinch=0.01)
+    want = {p: 0 for p in gc.PARTS}
+    inside = {p: 0 for p in gc.PARTS}
+    x = d.x.double()
+    for t in range(3):
+        res = MeshQuery(bv[t], body.faces).query(x[t])
+        dist, face = np.asarray(res.distance), np.asarray(res.face)
+        ins = np.nonzero(dist < 0)[0]
+        for p in gc.PARTS:
+            sel = ins[parts[face[ins]] == p]
+            if sel.size:
+                other = MeshQuery(bv[t], torch.as_tensor(faces[parts != p]))
+                do = np.abs(np.asarray(other.query(x[t][sel], max_distance=0.02).distance))
+                want[p] += int((do < 0.01).sum())
+                inside[p] += int(sel.size)
+    assert {p: v["pinched"] for p, v in r["parts"].items()} == want
+    assert {p: v["inside"] for p, v in r["parts"].items()} == inside
+    assert sum(want.values()) > 0 and all(v > 0 for v in inside.values())
+
+
 def test_span_optimum_rebuilds_the_model_output_and_lowers_the_loss(script):
     """``gaps_contacts.span_optimum``: the garment rebuilt from the network's own output-basis
     coefficients at a frame is the model's drape there (to float32 rounding); minimising the
