@@ -39,9 +39,10 @@ def resolve_model(method: str, garment: str, garment_file: str | None, model_fil
                              + " (train one with polygeo train-drape)")
         path = shipped_model_path(garment)
         if not path.is_file():
+            shipped = sorted(p.stem[len("gaps_"):] for p in path.parent.glob("gaps_*.pt"))
             raise ValueError(f"--garment: no shipped GAPS model for {garment!r} (shipped: "
-                             f"tshirt, dress); train one with polygeo train-drape and pass "
-                             "--model")
+                             f"{', '.join(shipped)}); train one with polygeo train-drape and "
+                             "pass --model")
         model = load_model(path)
     else:
         model = load_model(model_file)
