@@ -325,7 +325,10 @@ def coarse_directions(pool: Pool, ids: torch.Tensor, g: torch.Tensor, k: int) ->
     at a time, so it does not depend on the batch) and kept in ``pool.coarse_kept`` while the
     entry stays on that frame (keyed by its time, size and duration); the kept spaces are not
     checkpointed, and rebuilding one gives the same space (it depends on the frame's state
-    only). Returns ``(B, r, r, 3)`` in ``g``'s dtype, zero at handles.
+    only). A sheet whose operator does not factor (a state far from any drape, the shift of
+    :func:`draping.fnopt.twolevel._factor` not enough) gets a zero direction on that frame
+    (the subspace step gives it no weight) instead of stopping the run. Returns
+    ``(B, r, r, 3)`` in ``g``'s dtype, zero at handles.
     """
     kept = pool.__dict__.setdefault("coarse_kept", {})
     out = []
@@ -334,8 +337,13 @@ def coarse_directions(pool: Pool, ids: torch.Tensor, g: torch.Tensor, k: int) ->
         if i not in kept or kept[i][0] != key:
             pi, _ = pool.problem(torch.tensor([i]), analytic_hvp=True)
             _, _, hvp = pi.grad_hvp(torch.zeros_like(pi.x_prev))
-            kept[i] = (key, galerkin_space(pi, hvp, k))
-        out.append(coarse_correction(kept[i][1], g[j:j + 1]))
+            try:
+                kept[i] = (key, galerkin_space(pi, hvp, k))
+            except ValueError:
+                kept[i] = (key, None)
+        space = kept[i][1]
+        out.append(torch.zeros_like(g[j:j + 1]) if space is None else
+                   coarse_correction(space, g[j:j + 1]))
     return [-torch.cat(out)]
 
 

@@ -31,6 +31,25 @@ def test_the_space_is_kept_per_frame_and_rebuilt_the_same(monkeypatch):
     assert len(builds) == 5
 
 
+def test_a_sheet_whose_operator_does_not_factor_gets_no_direction(monkeypatch):
+    pool = tiny_pool()
+    ids = torch.tensor([1, 3])
+    g = torch.randn(2, 8, 8, 3, generator=torch.Generator().manual_seed(5))
+    (want,) = train.coarse_directions(pool, ids, g, K)
+    pool.coarse_kept.pop(3)
+    calls = []
+
+    def fail(*a):
+        calls.append(1)
+        raise ValueError("coarse space: the Galerkin operator does not factor")
+
+    monkeypatch.setattr(train, "galerkin_space", fail)
+    (d,) = train.coarse_directions(pool, ids, g, K)
+    assert torch.equal(d[0], want[0]) and torch.equal(d[1], torch.zeros_like(d[1]))
+    train.coarse_directions(pool, ids, g, K)                 # not tried again on that frame
+    assert len(calls) == 1
+
+
 def test_with_a_zero_proposal_the_training_update_is_the_two_level_pcg_step():
     # independent implementation: classical.solve_pcg(normal=True, coarse=K), one iteration
     # (seed 1: on seed 0 one sheet, its handles 0.3 s of motion away in one step, gets a step
