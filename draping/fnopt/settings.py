@@ -84,7 +84,9 @@ class TrainSettings:
     built at ``a = 0`` of its current frame and kept while it stays on that frame), as
     ``solve_fnopt(two_level=K)`` does at inference; the validation solve uses it too. The FNO
     then only has to learn what the coarse space and the classical directions leave. Not with
-    ``proposal_iters`` or ``rollout_steps``.
+    ``proposal_iters`` or ``rollout_steps``. Session 17: ``K = 16`` from the shipped weights
+    (13,002 steps) did not beat the two-level PCG at equal cost (hard trio 9.00 against 0.66,
+    docs/measurements/fnopt.md), so the default stays 0.
     """
 
     width: int = 16
