@@ -1,4 +1,4 @@
-"""The shipped GAPS models (T-shirt, dress) reproduce the figures recorded in their JSON."""
+"""The shipped GAPS models (T-shirt, dress, skirt) reproduce the figures recorded in their JSON."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from draping.body import AnnyBody
 from draping.gaps import Case, drape_case, frame_metrics, load_model, shipped_model_path
 
 
-@pytest.mark.parametrize("name", ["tshirt", "dress"])
+@pytest.mark.parametrize("name", ["tshirt", "dress", "skirt"])
 def test_shipped_model_reproduces_its_record(name):
     """The 20-frame check case (walk, held-out shape): eps_e, eps_a, eps_c within 0.05
     percentage points of the recorded means (float32 inference; the record was computed by the
