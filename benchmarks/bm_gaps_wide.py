@@ -240,12 +240,14 @@ def chart(res: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     gs = list(res["garments"])
+    labels = sorted({lab for g in gs for lab in res["garments"][g]["models"]})
+    colour = {lab: f"C{i % 10}" for i, lab in enumerate(labels)}  # one colour per label
     fig, axes = plt.subplots(2, len(gs), figsize=(4.6 * len(gs), 8.0), squeeze=False)
     for j, g in enumerate(gs):
         rec = res["garments"][g]
         ax = axes[0, j]
         for lab, m in rec["models"].items():
-            ax.scatter(m["mean"]["eps_e"], m["mean"]["eps_c"], s=40)
+            ax.scatter(m["mean"]["eps_e"], m["mean"]["eps_c"], s=40, color=colour[lab])
             ax.annotate(lab, (m["mean"]["eps_e"], m["mean"]["eps_c"]), fontsize=8,
                         xytext=(4, 4), textcoords="offset points")
         ax.set_ylim(bottom=0.0)
@@ -261,7 +263,7 @@ def chart(res: dict, path: Path) -> None:
                 continue
             x = [r["eps_e"] for r in rec["models"][ref]["cases"]]
             y = [r["eps_e"] for r in m["cases"]]
-            ax.scatter(x, y, s=8, label=lab)
+            ax.scatter(x, y, s=8, label=lab, color=colour[lab])
             lo, hi = min(lo, *x, *y), max(hi, *x, *y)
         if np.isfinite(lo):
             ax.plot([lo, hi], [lo, hi], "k--", lw=0.8)
