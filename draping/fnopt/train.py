@@ -170,6 +170,7 @@ class Pool:
         self.max_frame = torch.zeros(n, dtype=torch.int64)
         self.mat = {k: torch.zeros(n) for k in ("stretch", "shear", "bend", "density",
                                                 "damping")}
+        self.coarse_kept: dict = {}  # two-level spaces per entry (coarse_directions), not saved
         for i in range(n):
             self.reset(i)
 
@@ -330,7 +331,7 @@ def coarse_directions(pool: Pool, ids: torch.Tensor, g: torch.Tensor, k: int) ->
     (the subspace step gives it no weight) instead of stopping the run. Returns
     ``(B, r, r, 3)`` in ``g``'s dtype, zero at handles.
     """
-    kept = pool.__dict__.setdefault("coarse_kept", {})
+    kept = pool.coarse_kept
     out = []
     for j, i in enumerate(ids.tolist()):
         key = (float(pool.t[i]), float(pool.size[i]), float(pool.duration[i]), k)
@@ -488,7 +489,7 @@ def train(s: TrainSettings, out_dir: str | Path, quiet: bool = False,
         opt.load_state_dict(ck.tensors["opt"])
         opt2.load_state_dict(ck.tensors["opt2"])
         pool = Pool.__new__(Pool)
-        pool.s, pool.gen = s, gen
+        pool.s, pool.gen, pool.coarse_kept = s, gen, {}
         for k, v in ck.tensors["pool"].items():
             setattr(pool, k, v if k != "mat" else dict(v))
         gen.set_state(ck.tensors["gen"])

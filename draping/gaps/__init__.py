@@ -58,6 +58,7 @@ if TYPE_CHECKING:
         model_garment,
         motion_features,
         save_model,
+        shipped_garments,
         shipped_model_path,
         time_inference,
     )
@@ -110,6 +111,7 @@ __all__ = [
     "motion_features",
     "save_model",
     "shipped_model_path",
+    "shipped_garments",
     "time_inference",
     "TERMS",
     "body_contacts",

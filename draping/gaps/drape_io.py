@@ -16,7 +16,14 @@ from draping.body import AnnyBody
 from draping.garments import save_garment
 
 from .data import shape_case, template_garment
-from .infer import check_garment_for, drape_motion, load_model, model_garment, shipped_model_path
+from .infer import (
+    check_garment_for,
+    drape_motion,
+    load_model,
+    model_garment,
+    shipped_garments,
+    shipped_model_path,
+)
 from .settings import GapsSettings
 
 __all__ = ["drape_job", "resolve_model", "reference_errors"]
@@ -39,10 +46,9 @@ def resolve_model(method: str, garment: str, garment_file: str | None, model_fil
                              + " (train one with polygeo train-drape)")
         path = shipped_model_path(garment)
         if not path.is_file():
-            shipped = sorted(p.stem[len("gaps_"):] for p in path.parent.glob("gaps_*.pt"))
             raise ValueError(f"--garment: no shipped GAPS model for {garment!r} (shipped: "
-                             f"{', '.join(shipped)}); train one with polygeo train-drape and "
-                             "pass --model")
+                             f"{', '.join(shipped_garments())}); train one with polygeo "
+                             "train-drape and pass --model")
         model = load_model(path)
     else:
         model = load_model(model_file)

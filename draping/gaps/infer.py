@@ -49,6 +49,7 @@ __all__ = [
     "drape_case",
     "evaluate",
     "shipped_model_path",
+    "shipped_garments",
     "model_garment",
     "frame_metrics",
     "pose_bone_indices",
@@ -63,6 +64,11 @@ _FORMAT = "draping.gaps.model"
 def shipped_model_path(garment: str) -> Path:
     """``draping/data/gaps_<garment>.pt`` (may not exist for every garment)."""
     return DATA_DIR / f"gaps_{garment}.pt"
+
+
+def shipped_garments() -> list[str]:
+    """The garments whose GAPS model ships (those :func:`shipped_model_path` finds), sorted."""
+    return sorted(p.stem[len("gaps_"):] for p in DATA_DIR.glob("gaps_*.pt"))
 
 
 def garment_key(vertices: Any, faces: Any) -> str:

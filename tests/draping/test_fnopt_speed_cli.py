@@ -4,7 +4,6 @@ gradient (the fused closed form), and the benchmark's ``-autograd`` row names ar
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,7 +13,6 @@ from fnopt_cases import random_problem
 from draping.fnopt import classical
 from draping.fnopt.simulate import SimSettings, step_function
 
-ROOT = Path(__file__).resolve().parents[2]
 F64 = torch.float64
 
 

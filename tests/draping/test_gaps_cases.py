@@ -4,14 +4,11 @@ random motion on the shape drawn with that seed, seeds neither trained on nor he
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from draping.gaps import held_out_cases, random_cases, random_shapes
-
-ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_random_cases_are_each_seeds_motion_on_its_own_shape():

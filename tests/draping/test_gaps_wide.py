@@ -4,12 +4,10 @@ from __future__ import annotations
 
 import json
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
 # Seeds whose shipped drapes touch the body within 15 frames (dress from frame 6 on 720, 13 on
 # 642; T-shirt from frame 12 on 642), so the contact counts compared are not all zero.
 SEEDS, FRAMES = "642,720", 15
