@@ -138,9 +138,9 @@ def register_simulate(sub: argparse._SubParsersAction) -> None:
                    help="fnopt: the FNO's proposal on every E-th iteration only, the classical "
                    "step between (E >= --iters: the first iteration only; default 1)")
     p.add_argument("--coarse", type=int, default=0,
-                   help="pcg: add the two-level coarse correction (the step's Hessian on the "
-                   "grid whose longer side has K vertices, rebuilt every 8 frames; 0: off; "
-                   "default 0)")
+                   help="pcg, fnopt: add the two-level coarse correction (the step's Hessian on "
+                   "the grid whose longer side has K vertices, rebuilt every 8 frames; fnopt: "
+                   "the shipped weights were not trained with it; 0: off; default 0)")
     p.add_argument("--lr", type=float, default=None,
                    help="gd/adam step size, lbfgs step scale (default gd: per sheet the "
                    "stable step from a curvature bound, adam 0.1, lbfgs 1.0)")

@@ -39,9 +39,10 @@ DEFAULT_LR = {"gd": None, "adam": 0.1, "lbfgs": 1.0}
 #: ``benchmarks/bm_fnopt.py`` and session 14's equal-cost control.
 PCG_NORMAL_SPLIT = 4
 
-#: ``optimizer="pcg"`` with ``coarse``: the two-level coarse space is rebuilt every this many
-#: frames (``solve_pcg(coarse_every=...)``; its build costs about 20 iterations at 64x64).
-PCG_COARSE_EVERY = 8
+#: ``coarse`` (``pcg`` or ``fnopt``): the two-level coarse space is rebuilt every this many
+#: frames (``solve_pcg(coarse_every=...)``, ``solve_fnopt(two_level_every=...)``; its build
+#: costs about 20 PCG iterations at 64x64).
+COARSE_EVERY = 8
 
 
 @dataclass
@@ -56,9 +57,10 @@ class SimSettings:
     ``fno_every``-th iteration only, the classical step between (``solve_fnopt(fno_every=...)``).
     ``optimizer="pcg"``: FNOpt's step without the FNO, ``iters`` iterations of PCG with the
     normal directions (:data:`PCG_NORMAL_SPLIT`); ``lr`` is not used (exact subspace steps).
-    ``coarse`` (``pcg`` only; 0, the default: off): add the two-level coarse correction on the
-    grid whose longer side has this many vertices (``solve_pcg(coarse=...)``,
-    :mod:`draping.fnopt.twolevel`), rebuilt every :data:`PCG_COARSE_EVERY` frames.
+    ``coarse`` (``pcg`` or ``fnopt``; 0, the default: off): add the two-level coarse
+    correction on the grid whose longer side has this many vertices (``solve_pcg(coarse=...)``,
+    ``solve_fnopt(two_level=...)``, :mod:`draping.fnopt.twolevel`), rebuilt every
+    :data:`COARSE_EVERY` frames; with ``fnopt`` the shipped weights were not trained with it.
     """
 
     res: tuple = (64, 64)
@@ -96,8 +98,8 @@ class SimSettings:
         check_recycle(self.recycle)
         check_fno_every(self.fno_every)
         check_grid_option(self.coarse, "coarse")
-        if self.coarse and self.optimizer != "pcg":
-            raise ValueError(f"coarse: {self.coarse} needs optimizer 'pcg', got "
+        if self.coarse and self.optimizer not in ("pcg", "fnopt"):
+            raise ValueError(f"coarse: {self.coarse} needs optimizer 'pcg' or 'fnopt', got "
                              f"{self.optimizer!r}")
 
     def sheet(self) -> cloth.Sheet:
@@ -120,7 +122,8 @@ def step_function(settings: SimSettings, model=None):
     e.g. with repulsion), as FNOpt's inference and ``benchmarks/bm_fnopt.py``'s classical rows
     do, so that ``polygeo simulate`` and the benchmark time the same solver. ``pcg``:
     ``solve_pcg(normal=True, split=PCG_NORMAL_SPLIT)`` (with ``coarse``: the two-level
-    correction too, its coarse space kept across the rollout's frames). Every solver but the
+    correction too, its coarse space kept across the rollout's frames; FNOpt's ``coarse`` the
+    same, as ``solve_fnopt(two_level=...)``). Every solver but the
     reference runs under ``torch.inference_mode`` where the step problem needs no autograd
     (:func:`~draping.fnopt.step_problem.autograd_free_call`).
     """
@@ -132,13 +135,15 @@ def step_function(settings: SimSettings, model=None):
 
         net = model if model is not None else load_pretrained()
         k, r, e, memory = settings.fno_coarse, settings.recycle, settings.fno_every, {}
+        two = {"two_level": settings.coarse, "two_level_every": COARSE_EVERY} \
+            if settings.coarse else {}
         return lambda p, a0: solve_fnopt(net, p, n, coarse_res=k, recycle=r, memory=memory,
-                                         fno_every=e)
+                                         fno_every=e, **two)
     if name == "pcg":
         k, memory = settings.coarse, {}
         if k:
             return lambda p, a0: solve_pcg(p, n, normal=True, split=PCG_NORMAL_SPLIT, coarse=k,
-                                           coarse_every=PCG_COARSE_EVERY, memory=memory)
+                                           coarse_every=COARSE_EVERY, memory=memory)
         return lambda p, a0: solve_pcg(p, n, normal=True, split=PCG_NORMAL_SPLIT)
     lr = settings.lr if settings.lr is not None else DEFAULT_LR[name]
     if name == "lbfgs":

@@ -186,23 +186,52 @@ def test_bad_coarse_options_get_clear_errors():
 
 def test_simulate_pcg_with_coarse():
     """``polygeo simulate --optimizer pcg --coarse K``: the settings' step is the two-level
-    solve (its coarse space kept across frames), not the plain one; other optimisers refuse
-    it; the reference's key does not depend on it."""
-    from draping.fnopt.simulate import PCG_COARSE_EVERY, SimSettings, step_function
+    solve (its coarse space kept across frames), not the plain one; optimisers other than pcg
+    and fnopt refuse it; the reference's key does not depend on it."""
+    from draping.fnopt.simulate import COARSE_EVERY, SimSettings, step_function
 
     s = SimSettings(res=(10, 12), optimizer="pcg", iters=3, coarse=4)
     p = random_problem(10, torch.float32, 4)
     mem = {}
     want = classical.solve_pcg(p, 3, normal=True, split=4, coarse=4,
-                               coarse_every=PCG_COARSE_EVERY, memory=mem)
+                               coarse_every=COARSE_EVERY, memory=mem)
     assert torch.equal(step_function(s)(p, None), want)
     plain = step_function(SimSettings(res=(10, 12), optimizer="pcg", iters=3))(p, None)
     assert not torch.equal(plain, want)
     assert s.key() == SimSettings(res=(10, 12), optimizer="pcg", iters=3).key()
-    with pytest.raises(ValueError, match="coarse"):
-        SimSettings(optimizer="fnopt", coarse=4)
+    for name in ("gd", "adam", "lbfgs", "reference"):
+        with pytest.raises(ValueError, match="coarse"):
+            SimSettings(optimizer=name, coarse=4)
     with pytest.raises(ValueError, match="coarse"):
         SimSettings(optimizer="pcg", coarse=1)
+
+
+def test_simulate_fnopt_with_coarse():
+    """``polygeo simulate --optimizer fnopt --coarse K``: over three frames of a rollout the
+    settings' step is ``solve_fnopt(two_level=K, two_level_every=COARSE_EVERY)`` with one
+    memory kept across the frames (so the coarse space is built once, not per frame), bit for
+    bit; ``coarse=0`` (the default) is the plain FNOpt solve; the reference's key does not
+    depend on it; a bad K raises."""
+    from fnopt_cases import tiny_fno
+
+    from draping.fnopt import model
+    from draping.fnopt.simulate import COARSE_EVERY, SimSettings, step_function
+
+    net = tiny_fno(normal=True)
+    s = SimSettings(res=(10, 12), optimizer="fnopt", iters=3, coarse=4)
+    step, mem = step_function(s, net), {}
+    probs = [random_problem(10, torch.float32, seed, layout="diagonal") for seed in (4, 5, 6)]
+    for p in probs:
+        want = model.solve_fnopt(net, p, 3, memory=mem, two_level=4,
+                                 two_level_every=COARSE_EVERY)
+        assert torch.equal(step(p, None), want)
+    off = step_function(SimSettings(res=(10, 12), optimizer="fnopt", iters=3), net)
+    assert torch.equal(off(probs[0], None), model.solve_fnopt(net, probs[0], 3))
+    assert not torch.equal(off(probs[0], None), model.solve_fnopt(net, probs[0], 3,
+                                                                  two_level=4))
+    assert s.key() == SimSettings(res=(10, 12), optimizer="fnopt", iters=3).key()
+    with pytest.raises(ValueError, match="coarse"):
+        SimSettings(optimizer="fnopt", coarse=1)
 
 
 def test_fnopt_with_the_two_level_direction():
