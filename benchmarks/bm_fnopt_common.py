@@ -76,10 +76,14 @@ AUTOGRAD = "-autograd"
 
 #: The rows without a gradient option, so without an ``-autograd`` variant: FNOpt and the
 #: DCT-metric methods take the step problem's own gradient and Hessian products.
-NO_GRADIENT_OPTION = ("fnopt", "fnopt-line", "pgd", "pcg", "pcg-n", "pcg-nc")
+NO_GRADIENT_OPTION = ("fnopt", "fnopt-line", "pgd", "pcg", "pcg-n", "pcg-nc", "fnopt-nc",
+                      "fnopt-nc1")
 
 #: The two-level row ``pcg-nc``: ``pcg-n`` plus the Galerkin coarse correction on a grid of
-#: this many vertices (longer side), rebuilt every :data:`TWO_LEVEL_EVERY` frames.
+#: this many vertices (longer side), rebuilt every :data:`TWO_LEVEL_EVERY` frames; ``fnopt-nc``:
+#: FNOpt with the same direction (``solve_fnopt(two_level=...)``, the shipped weights), and
+#: ``fnopt-nc1`` the same rebuilt every frame (session 18's screen: only that one meets e_CD
+#: <= 5 on the hard trio at N = 10).
 TWO_LEVEL_COARSE = 16
 TWO_LEVEL_EVERY = 8
 
@@ -116,6 +120,11 @@ def _step(name: str, n: int, net=None, lr=None, fno: dict | None = None, **kw):
         fno = fno or {}
         memory = {}                 # the recycled basis between frames (``recycle`` > 0)
         return lambda p, a0: solve_fnopt(net, p, n, memory=memory, **fno)
+    if name in ("fnopt-nc", "fnopt-nc1"):
+        memory = {}                 # the coarse space between frames
+        every = TWO_LEVEL_EVERY if name == "fnopt-nc" else 1
+        return lambda p, a0: solve_fnopt(net, p, n, memory=memory, two_level=TWO_LEVEL_COARSE,
+                                         two_level_every=every)
     if name == "fnopt-line":
         return lambda p, a0: solve_fnopt(net, p, n, step="line")
     if name == "pgd":

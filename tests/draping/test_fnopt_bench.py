@@ -297,3 +297,28 @@ def test_hard_cases_are_general_cases_and_chart(bm, tmp_path):
     rec["equal_error"] = [{"case": list(c), "speedup": sp} for c in bm.HARD_CASES]
     bm.chart_hard(rec, tmp_path / "h.png")
     assert (tmp_path / "h.png").stat().st_size > 1000
+
+
+def test_fnopt_two_level_rows_are_the_two_level_solve(bm, monkeypatch):
+    """The ``fnopt-nc`` / ``fnopt-nc1`` rows: FNOpt with the two-level direction on the grid of
+    ``TWO_LEVEL_COARSE`` vertices (4 here: a 10 x 12 sheet), its coarse space kept across frames
+    for ``TWO_LEVEL_EVERY`` frames / rebuilt every frame; over three frames each row equals that
+    solve bit for bit (one memory per row), and the two rows differ once the kept space ages."""
+    from fnopt_cases import random_problem, tiny_fno
+
+    from draping.fnopt.model import solve_fnopt
+
+    common = sys.modules[bm._step.__module__]
+    monkeypatch.setattr(common, "TWO_LEVEL_COARSE", 4)
+    net = tiny_fno(normal=True)
+    probs = [random_problem(10, torch.float32, seed, layout="diagonal") for seed in (1, 2, 3)]
+    got = {}
+    for name, every in (("fnopt-nc", common.TWO_LEVEL_EVERY), ("fnopt-nc1", 1)):
+        step, mem = bm._step(name, 3, net), {}
+        got[name] = [step(p, None) for p in probs]
+        for p, out in zip(probs, got[name]):
+            want = solve_fnopt(net, p, 3, memory=mem, two_level=common.TWO_LEVEL_COARSE,
+                               two_level_every=every)
+            assert torch.equal(out, want)
+    assert torch.equal(got["fnopt-nc"][0], got["fnopt-nc1"][0])
+    assert not torch.equal(got["fnopt-nc"][2], got["fnopt-nc1"][2])
