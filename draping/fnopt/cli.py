@@ -98,7 +98,7 @@ def run_train(args: argparse.Namespace) -> int:
 
 def register_simulate(sub: argparse._SubParsersAction) -> None:
     """Add ``simulate``."""
-    from .settings import LAYOUTS, MOTIONS, OPTIMIZERS
+    from .settings import COARSE_EVERY, LAYOUTS, MOTIONS, OPTIMIZERS
 
     p = sub.add_parser(
         "simulate",
@@ -139,8 +139,11 @@ def register_simulate(sub: argparse._SubParsersAction) -> None:
                    "step between (E >= --iters: the first iteration only; default 1)")
     p.add_argument("--coarse", type=int, default=0,
                    help="pcg, fnopt: add the two-level coarse correction (the step's Hessian on "
-                   "the grid whose longer side has K vertices, rebuilt every 8 frames; fnopt: "
-                   "the shipped weights were not trained with it; 0: off; default 0)")
+                   "the grid whose longer side has K vertices; fnopt: the shipped weights were "
+                   "not trained with it; 0: off; default 0)")
+    p.add_argument("--coarse-every", type=int, default=COARSE_EVERY,
+                   help="with --coarse: rebuild the coarse space every F frames (1: every "
+                   f"frame; default {COARSE_EVERY})")
     p.add_argument("--lr", type=float, default=None,
                    help="gd/adam step size, lbfgs step scale (default gd: per sheet the "
                    "stable step from a curvature bound, adam 0.1, lbfgs 1.0)")
@@ -175,7 +178,8 @@ def run_simulate(args: argparse.Namespace) -> int:
                     iters=args.iters, lr=args.lr,
                     material=Material(args.stretch, args.shear, args.bend),
                     repulsion=args.repulsion, fno_coarse=args.fno_coarse,
-                    recycle=args.recycle, fno_every=args.fno_every, coarse=args.coarse)
+                    recycle=args.recycle, fno_every=args.fno_every, coarse=args.coarse,
+                    coarse_every=args.coarse_every)
     model = None
     if args.weights is not None:
         if s.optimizer != "fnopt":

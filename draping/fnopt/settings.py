@@ -32,6 +32,11 @@ MOTIONS = ("x", "y", "z", "xy", "xyz", "x-rev", "y-rev", "z-rev", "xy-rev", "xyz
 #: Optimisers of ``polygeo simulate``.
 OPTIMIZERS = ("fnopt", "gd", "adam", "lbfgs", "pcg", "reference")
 
+#: ``polygeo simulate --coarse K`` (``pcg`` or ``fnopt``): by default the two-level coarse space
+#: is rebuilt every this many frames (``SimSettings.coarse_every``, ``solve_pcg(coarse_every=...)``,
+#: ``solve_fnopt(two_level_every=...)``; its build costs about 20 PCG iterations at 64x64).
+COARSE_EVERY = 8
+
 #: Handle distributions of the training pool (see :func:`draping.fnopt.train.random_handles`).
 HANDLE_DISTRIBUTIONS = ("random", "corners-interior", "folding")
 

@@ -16,13 +16,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from polygeo.checks import check_int
+
 from ..metrics import relative_vertex_error
 from . import cloth
 from .classical import CLASSICAL, REFERENCE_TOL, solve_pcg, solve_reference
 from .coarse import check_grid_option
 from .handles import DT, check_motion
 from .rollouts import Rollout, rollout
-from .settings import OPTIMIZERS
+from .settings import COARSE_EVERY, OPTIMIZERS
 
 __all__ = ["SimSettings", "OPTIMIZERS", "DEFAULT_LR", "PCG_NORMAL_SPLIT", "step_function", "run",
            "e_cd", "frame_metrics", "reference_rollout", "write_outputs"]
@@ -39,12 +41,6 @@ DEFAULT_LR = {"gd": None, "adam": 0.1, "lbfgs": 1.0}
 #: ``benchmarks/bm_fnopt.py`` and session 14's equal-cost control.
 PCG_NORMAL_SPLIT = 4
 
-#: ``coarse`` (``pcg`` or ``fnopt``): the two-level coarse space is rebuilt every this many
-#: frames (``solve_pcg(coarse_every=...)``, ``solve_fnopt(two_level_every=...)``; its build
-#: costs about 20 PCG iterations at 64x64).
-COARSE_EVERY = 8
-
-
 @dataclass
 class SimSettings:
     """A rollout: grid ``res`` (H, W), sheet width ``size`` (m), handles, motion, optimiser.
@@ -60,7 +56,8 @@ class SimSettings:
     ``coarse`` (``pcg`` or ``fnopt``; 0, the default: off): add the two-level coarse
     correction on the grid whose longer side has this many vertices (``solve_pcg(coarse=...)``,
     ``solve_fnopt(two_level=...)``, :mod:`draping.fnopt.twolevel`), rebuilt every
-    :data:`COARSE_EVERY` frames; with ``fnopt`` the shipped weights were not trained with it.
+    ``coarse_every`` frames (default :data:`COARSE_EVERY`); with ``fnopt`` the shipped weights
+    were not trained with it.
     """
 
     res: tuple = (64, 64)
@@ -79,6 +76,7 @@ class SimSettings:
     recycle: int = 0
     fno_every: int = 1
     coarse: int = 0
+    coarse_every: int = COARSE_EVERY
 
     def __post_init__(self) -> None:
         if self.optimizer not in OPTIMIZERS:
@@ -101,6 +99,7 @@ class SimSettings:
         if self.coarse and self.optimizer not in ("pcg", "fnopt"):
             raise ValueError(f"coarse: {self.coarse} needs optimizer 'pcg' or 'fnopt', got "
                              f"{self.optimizer!r}")
+        check_int(self.coarse_every, "coarse_every", low=1)
 
     def sheet(self) -> cloth.Sheet:
         """The grid sheet."""
@@ -109,7 +108,8 @@ class SimSettings:
     def key(self) -> dict:
         """What the reference rollout depends on."""
         d = asdict(self)
-        for k in ("optimizer", "iters", "lr", "fno_coarse", "recycle", "fno_every", "coarse"):
+        for k in ("optimizer", "iters", "lr", "fno_coarse", "recycle", "fno_every", "coarse",
+                  "coarse_every"):
             d.pop(k)
         return d
 
@@ -135,7 +135,7 @@ def step_function(settings: SimSettings, model=None):
 
         net = model if model is not None else load_pretrained()
         k, r, e, memory = settings.fno_coarse, settings.recycle, settings.fno_every, {}
-        two = {"two_level": settings.coarse, "two_level_every": COARSE_EVERY} \
+        two = {"two_level": settings.coarse, "two_level_every": settings.coarse_every} \
             if settings.coarse else {}
         return lambda p, a0: solve_fnopt(net, p, n, coarse_res=k, recycle=r, memory=memory,
                                          fno_every=e, **two)
@@ -143,7 +143,8 @@ def step_function(settings: SimSettings, model=None):
         k, memory = settings.coarse, {}
         if k:
             return lambda p, a0: solve_pcg(p, n, normal=True, split=PCG_NORMAL_SPLIT, coarse=k,
-                                           coarse_every=COARSE_EVERY, memory=memory)
+                                           coarse_every=settings.coarse_every,
+                                           memory=memory)
         return lambda p, a0: solve_pcg(p, n, normal=True, split=PCG_NORMAL_SPLIT)
     lr = settings.lr if settings.lr is not None else DEFAULT_LR[name]
     if name == "lbfgs":

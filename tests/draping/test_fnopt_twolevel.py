@@ -207,11 +207,11 @@ def test_simulate_pcg_with_coarse():
 
 
 def test_simulate_fnopt_with_coarse():
-    """``polygeo simulate --optimizer fnopt --coarse K``: over three frames of a rollout the
-    settings' step is ``solve_fnopt(two_level=K, two_level_every=COARSE_EVERY)`` with one
-    memory kept across the frames (so the coarse space is built once, not per frame), bit for
-    bit; ``coarse=0`` (the default) is the plain FNOpt solve; the reference's key does not
-    depend on it; a bad K raises."""
+    """``polygeo simulate --optimizer fnopt --coarse K [--coarse-every F]``: over three frames of
+    a rollout the settings' step is ``solve_fnopt(two_level=K, two_level_every=F)`` (default
+    ``COARSE_EVERY``) with one memory kept across the frames (so the coarse space is kept, not
+    rebuilt per frame, unless F = 1), bit for bit; ``coarse=0`` (the default) is the plain FNOpt
+    solve; the reference's key depends on neither; a bad K or F raises."""
     from fnopt_cases import tiny_fno
 
     from draping.fnopt import model
@@ -225,6 +225,12 @@ def test_simulate_fnopt_with_coarse():
         want = model.solve_fnopt(net, p, 3, memory=mem, two_level=4,
                                  two_level_every=COARSE_EVERY)
         assert torch.equal(step(p, None), want)
+    s1, mem1 = SimSettings(res=(10, 12), optimizer="fnopt", iters=3, coarse=4, coarse_every=1), {}
+    step1 = step_function(s1, net)
+    for p in probs:                              # --coarse-every 1: rebuilt every frame
+        want = model.solve_fnopt(net, p, 3, memory=mem1, two_level=4, two_level_every=1)
+        assert torch.equal(step1(p, None), want)
+    assert s1.key() == s.key()
     off = step_function(SimSettings(res=(10, 12), optimizer="fnopt", iters=3), net)
     assert torch.equal(off(probs[0], None), model.solve_fnopt(net, probs[0], 3))
     assert not torch.equal(off(probs[0], None), model.solve_fnopt(net, probs[0], 3,
@@ -232,6 +238,8 @@ def test_simulate_fnopt_with_coarse():
     assert s.key() == SimSettings(res=(10, 12), optimizer="fnopt", iters=3).key()
     with pytest.raises(ValueError, match="coarse"):
         SimSettings(optimizer="fnopt", coarse=1)
+    with pytest.raises(ValueError, match="coarse_every"):
+        SimSettings(optimizer="fnopt", coarse=4, coarse_every=0)
 
 
 def test_fnopt_with_the_two_level_direction():
