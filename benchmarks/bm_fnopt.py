@@ -88,6 +88,7 @@ from bm_fnopt_common import (  # noqa: E402,F401
     ROOT,
     STARTS,
     THESIS_LBFGS,
+    TWO_LEVEL_EVERY,
     _fno_options,
     _loglog_chart,
     _measure,
@@ -248,6 +249,12 @@ def main() -> None:
     ap.add_argument("--fno-every", type=int, default=1, help="validation / general parts: "
                     "the FNO's proposal on every E-th iteration only, the classical step between "
                     "(solve_fnopt(fno_every=E); 1: every iteration)")
+    ap.add_argument("--two-level", type=int, default=0, help="validation / general parts: the "
+                    "two-level coarse direction on a grid of K vertices (longer side) in the "
+                    "fnopt rows (solve_fnopt(two_level=K); 0: off, the default step)")
+    ap.add_argument("--two-level-every", type=int, default=TWO_LEVEL_EVERY,
+                    help="validation / general parts: with --two-level, rebuild the coarse "
+                    f"space every F frames (default {TWO_LEVEL_EVERY})")
     ap.add_argument("--val-iters", type=int, default=10, help="validation part: FNOpt's "
                     "iterations per step")
     ap.add_argument("--merge", action="store_true", help="general part: replace only the rows "

@@ -77,15 +77,17 @@ AUTOGRAD = "-autograd"
 #: The rows without a gradient option, so without an ``-autograd`` variant: FNOpt and the
 #: DCT-metric methods take the step problem's own gradient and Hessian products.
 NO_GRADIENT_OPTION = ("fnopt", "fnopt-line", "pgd", "pcg", "pcg-n", "pcg-nc", "fnopt-nc",
-                      "fnopt-nc1")
+                      "fnopt-nc1", "fnopt-nc4")
 
 #: The two-level row ``pcg-nc``: ``pcg-n`` plus the Galerkin coarse correction on a grid of
 #: this many vertices (longer side), rebuilt every :data:`TWO_LEVEL_EVERY` frames; ``fnopt-nc``:
 #: FNOpt with the same direction (``solve_fnopt(two_level=...)``, the shipped weights), and
-#: ``fnopt-nc1`` the same rebuilt every frame (session 18's screen: only that one meets e_CD
-#: <= 5 on the hard trio at N = 10).
+#: ``fnopt-nc1`` / ``fnopt-nc4`` the same rebuilt every frame / every 4 frames (session 18: both
+#: meet e_CD <= 5 on the hard trio at N = 10; every 8 frames does not).
 TWO_LEVEL_COARSE = 16
 TWO_LEVEL_EVERY = 8
+#: The rebuild period of each FNOpt two-level row.
+FNOPT_TWO_LEVEL_ROWS = {"fnopt-nc": TWO_LEVEL_EVERY, "fnopt-nc1": 1, "fnopt-nc4": 4}
 
 #: "Equal error": the metric compared (mean over the rollout's measured frames). e_3D, not
 #: e_CD: e_CD x 1e3 with 10k samples has a sampling floor of about 0.13 that every converged
@@ -95,9 +97,10 @@ EQUAL_ERROR_METRIC = "e_3d"
 
 def _fno_options(args) -> dict:
     """``solve_fnopt``'s options from ``--coarse-res`` / ``--stiffness-res`` / ``--recycle`` /
-    ``--fno-every``."""
+    ``--fno-every`` / ``--two-level`` / ``--two-level-every``."""
     return {"coarse_res": args.coarse_res, "stiffness_res": args.stiffness_res,
-            "recycle": args.recycle, "fno_every": args.fno_every}
+            "recycle": args.recycle, "fno_every": args.fno_every,
+            "two_level": args.two_level, "two_level_every": args.two_level_every}
 
 
 def _step(name: str, n: int, net=None, lr=None, fno: dict | None = None, **kw):
@@ -120,9 +123,9 @@ def _step(name: str, n: int, net=None, lr=None, fno: dict | None = None, **kw):
         fno = fno or {}
         memory = {}                 # the recycled basis between frames (``recycle`` > 0)
         return lambda p, a0: solve_fnopt(net, p, n, memory=memory, **fno)
-    if name in ("fnopt-nc", "fnopt-nc1"):
+    if name in FNOPT_TWO_LEVEL_ROWS:
         memory = {}                 # the coarse space between frames
-        every = TWO_LEVEL_EVERY if name == "fnopt-nc" else 1
+        every = FNOPT_TWO_LEVEL_ROWS[name]
         return lambda p, a0: solve_fnopt(net, p, n, memory=memory, two_level=TWO_LEVEL_COARSE,
                                          two_level_every=every)
     if name == "fnopt-line":

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
 
 import pytest
@@ -198,8 +199,6 @@ def test_every_timed_rollout_follows_an_untimed_warm_up_frame(bm, monkeypatch):
 
 
 def test_the_screened_case_set_gets_its_own_output_name(bm):
-    import argparse
-
     def tag(part="validation", case_set="all", tag=""):
         return bm.output_tag(argparse.Namespace(part=part, case_set=case_set, tag=tag))
 
@@ -300,10 +299,12 @@ def test_hard_cases_are_general_cases_and_chart(bm, tmp_path):
 
 
 def test_fnopt_two_level_rows_are_the_two_level_solve(bm, monkeypatch):
-    """The ``fnopt-nc`` / ``fnopt-nc1`` rows: FNOpt with the two-level direction on the grid of
-    ``TWO_LEVEL_COARSE`` vertices (4 here: a 10 x 12 sheet), its coarse space kept across frames
-    for ``TWO_LEVEL_EVERY`` frames / rebuilt every frame; over three frames each row equals that
-    solve bit for bit (one memory per row), and the two rows differ once the kept space ages."""
+    """The ``fnopt-nc`` / ``fnopt-nc1`` / ``fnopt-nc4`` rows: FNOpt with the two-level direction
+    on the grid of ``TWO_LEVEL_COARSE`` vertices (4 here: a 10 x 12 sheet), its coarse space kept
+    across frames for ``TWO_LEVEL_EVERY`` frames / rebuilt every frame / every 4 frames; over
+    three frames each row equals that solve bit for bit (one memory per row), the rows differ
+    once the kept space ages; ``fnopt`` rows given ``--two-level`` options (the general and
+    validation parts' ``_fno_options``) are the same solve."""
     from fnopt_cases import random_problem, tiny_fno
 
     from draping.fnopt.model import solve_fnopt
@@ -313,7 +314,7 @@ def test_fnopt_two_level_rows_are_the_two_level_solve(bm, monkeypatch):
     net = tiny_fno(normal=True)
     probs = [random_problem(10, torch.float32, seed, layout="diagonal") for seed in (1, 2, 3)]
     got = {}
-    for name, every in (("fnopt-nc", common.TWO_LEVEL_EVERY), ("fnopt-nc1", 1)):
+    for name, every in (("fnopt-nc", common.TWO_LEVEL_EVERY), ("fnopt-nc1", 1), ("fnopt-nc4", 4)):
         step, mem = bm._step(name, 3, net), {}
         got[name] = [step(p, None) for p in probs]
         for p, out in zip(probs, got[name]):
@@ -322,3 +323,8 @@ def test_fnopt_two_level_rows_are_the_two_level_solve(bm, monkeypatch):
             assert torch.equal(out, want)
     assert torch.equal(got["fnopt-nc"][0], got["fnopt-nc1"][0])
     assert not torch.equal(got["fnopt-nc"][2], got["fnopt-nc1"][2])
+    assert torch.equal(got["fnopt-nc4"][2], got["fnopt-nc"][2])    # both built at frame 0 only
+    opts = bm._fno_options(argparse.Namespace(coarse_res=0, stiffness_res=0, recycle=0,
+                                              fno_every=1, two_level=4, two_level_every=4))
+    step = bm._step("fnopt", 3, net, fno=opts)
+    assert all(torch.equal(step(p, None), out) for p, out in zip(probs, got["fnopt-nc4"]))
