@@ -15,6 +15,7 @@ import numpy as np
 
 from draping.fnopt import solvers
 from draping.fnopt.model import solve_fnopt
+from draping.fnopt.settings import COARSE_EVERY
 from draping.fnopt.simulate import DEFAULT_LR, SimSettings, frame_metrics
 from draping.viz import plot_curves
 
@@ -85,7 +86,7 @@ NO_GRADIENT_OPTION = ("fnopt", "fnopt-line", "pgd", "pcg", "pcg-n", "pcg-nc", "f
 #: ``fnopt-nc1`` / ``fnopt-nc4`` the same rebuilt every frame / every 4 frames (session 18: both
 #: meet e_CD <= 5 on the hard trio at N = 10; every 8 frames does not).
 TWO_LEVEL_COARSE = 16
-TWO_LEVEL_EVERY = 8
+TWO_LEVEL_EVERY = COARSE_EVERY      # ``polygeo simulate --coarse``'s default rebuild period
 #: The rebuild period of each FNOpt two-level row.
 FNOPT_TWO_LEVEL_ROWS = {"fnopt-nc": TWO_LEVEL_EVERY, "fnopt-nc1": 1, "fnopt-nc4": 4}
 
@@ -119,15 +120,13 @@ def _step(name: str, n: int, net=None, lr=None, fno: dict | None = None, **kw):
             raise ValueError(f"optimizer: {name!r}: {base} has no autograd variant (its "
                              f"gradient and products come from the step problem itself)")
         return _step(base, n, net, lr, fno, **{**kw, "fused_grad": False})
+    if name in FNOPT_TWO_LEVEL_ROWS:  # the fnopt row with its two-level options
+        return _step("fnopt", n, net, fno={"two_level": TWO_LEVEL_COARSE,
+                                           "two_level_every": FNOPT_TWO_LEVEL_ROWS[name]})
     if name == "fnopt":
         fno = fno or {}
-        memory = {}                 # the recycled basis between frames (``recycle`` > 0)
+        memory = {}                 # the recycled basis / coarse space between frames
         return lambda p, a0: solve_fnopt(net, p, n, memory=memory, **fno)
-    if name in FNOPT_TWO_LEVEL_ROWS:
-        memory = {}                 # the coarse space between frames
-        every = FNOPT_TWO_LEVEL_ROWS[name]
-        return lambda p, a0: solve_fnopt(net, p, n, memory=memory, two_level=TWO_LEVEL_COARSE,
-                                         two_level_every=every)
     if name == "fnopt-line":
         return lambda p, a0: solve_fnopt(net, p, n, step="line")
     if name == "pgd":
