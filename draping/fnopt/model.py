@@ -539,7 +539,7 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
                 guard: bool = True, info: dict | None = None, coarse_res: int = 0,
                 stiffness_res: int = 0, recycle: int = 0,
                 memory: dict | None = None, fno_every: int = 1, two_level: int = 0,
-                two_level_every: int = 1) -> torch.Tensor:
+                two_level_every: int = 1, two_level_from: int = 0) -> torch.Tensor:
     """Algorithm 2: ``iters`` learned updates from ``a = 0``; returns the accelerations.
 
     ``step``: ``"subspace"`` (default, :func:`subspace_update`) or ``"line"`` (the exact
@@ -571,7 +571,11 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
     ``two_level`` (subspace step; 0, the default: off), ``two_level_every`` (with ``memory``):
     the two-level coarse correction of :mod:`draping.fnopt.twolevel` on the grid whose longer
     side has ``two_level`` vertices joins the classical directions (``solve_pcg``'s ``coarse``
-    and ``coarse_every``; the shipped weights were not trained with it).
+    and ``coarse_every``; the shipped weights were not trained with it). ``two_level_from``
+    (0, the default: every iteration): the coarse direction joins iterations ``k >=
+    two_level_from`` only (the coarse space is still built or kept at iteration 0); at 64x64,
+    N = 10, K = 16 rebuilt every 4 frames, ``1`` kept both one-handle layouts on the
+    reference's fold where ``0`` did not (docs/measurements/fnopt.md, session 19).
 
     Where the step problem needs no autograd (:meth:`StepProblem.autograd_free`: the default
     fused closed forms) the solve runs under ``torch.inference_mode``: the same arithmetic bit
@@ -585,9 +589,11 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
         either of them set with ``step="line"``; ``recycle`` out of range
         (:func:`check_recycle`), set with ``step="line"`` or without ``memory``;
         ``fno_every`` < 1 or not 1 with ``step="line"``; ``two_level`` negative or 1, set
-        with ``step="line"``, or ``two_level_every > 1`` without ``memory``.
+        with ``step="line"``, or ``two_level_every > 1`` without ``memory``;
+        ``two_level_from`` negative, or not 0 without ``two_level``.
     TypeError
-        If ``recycle``, ``fno_every``, ``two_level`` or ``two_level_every`` is not an int.
+        If ``recycle``, ``fno_every``, ``two_level``, ``two_level_every`` or
+        ``two_level_from`` is not an int.
     """
     if step not in STEPS:
         raise ValueError(f"step: expected one of {list(STEPS)}, got {step!r}")
@@ -606,8 +612,11 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
     if two_level and (step == "line" or (two_level_every > 1 and memory is None)):
         raise ValueError(f"two_level: {two_level} needs step='subspace' (got {step!r}), and "
                          f"two_level_every > 1 a memory dict (got {type(memory).__name__})")
+    check_int(two_level_from, "two_level_from", low=0)
+    if two_level_from and not two_level:
+        raise ValueError(f"two_level_from: {two_level_from} needs two_level > 0 (got 0)")
     args = (model, p, iters, a0, step, guard, info, coarse_res, stiffness_res, recycle, memory,
-            fno_every, two_level, two_level_every)
+            fno_every, two_level, two_level_every, two_level_from)
     out = autograd_free_call(p, _solve, *args)   # no autograd bookkeeping where none is needed
     if recycle and p.autograd_free():            # normal tensors for the caller (in-place use)
         memory["basis"] = [w.clone() for w in memory["basis"]]
@@ -617,7 +626,7 @@ def solve_fnopt(model: FNO, p: StepProblem, iters: int, a0=None, step: str = "su
 
 def _solve(model: FNO, p: StepProblem, iters: int, a0, step: str, guard: bool, info,
            coarse_res: int, stiffness_res: int, recycle: int, memory, fno_every: int,
-           two_level: int = 0, two_level_every: int = 1):
+           two_level: int = 0, two_level_every: int = 1, two_level_from: int = 0):
     """:func:`solve_fnopt` after its checks (the same arguments, in its order)."""
     pre = laplace_preconditioner(p)
     pn = normal_preconditioner(p) if model.config.normal and step == "subspace" else None
@@ -642,7 +651,8 @@ def _solve(model: FNO, p: StepProblem, iters: int, a0, step: str, guard: bool, i
         zn = normal_directions(p, g, pn, model.config.normal_split) if pn is not None else None
         if two_level:
             space = space if k else kept_space(p, hvp, two_level, two_level_every, memory)
-            zn = (zn or []) + [-coarse_correction(space, g)]
+            if k >= two_level_from:
+                zn = (zn or []) + [-coarse_correction(space, g)]
         learned = k % fno_every == 0
         with torch.no_grad():
             dn, dn_pcg, _, m_pcg = subspace_update(model, p, g, hvp, z, z_prev, da, zn=zn,

@@ -265,3 +265,36 @@ def test_fnopt_with_the_two_level_direction():
         model.solve_fnopt(net, p, 2, two_level=4, two_level_every=3)
     with pytest.raises(ValueError, match="two_level"):
         model.solve_fnopt(net, p, 2, step="line", two_level=4)
+
+
+def test_two_level_from_delays_the_coarse_direction():
+    """``solve_fnopt(two_level_from=j)``: 0 is the default two-level solve bit for bit; the
+    iterations before ``j`` are the plain FNOpt iterations (so ``j >= iters`` is the plain solve
+    bit for bit, the coarse space still built and kept in ``memory`` as with ``j = 0``); from
+    ``j`` on the coarse direction joins (the result differs from both); bad values raise."""
+    from fnopt_cases import tiny_fno
+
+    from draping.fnopt import model
+
+    p = random_problem(12, torch.float32, 6, layout="diagonal")
+    net = tiny_fno(normal=True)
+    on = model.solve_fnopt(net, p, 4, two_level=4)
+    assert torch.equal(model.solve_fnopt(net, p, 4, two_level=4, two_level_from=0), on)
+    plain = model.solve_fnopt(net, p, 4)
+    for j in (4, 7):
+        mem = {}
+        got = model.solve_fnopt(net, p, 4, two_level=4, two_level_every=2, two_level_from=j,
+                                memory=mem)
+        assert torch.equal(got, plain)
+        assert mem["coarse"][1] == 1                 # built at iteration 0, kept for the next
+    assert torch.equal(model.solve_fnopt(net, p, 1, two_level=4, two_level_from=1),
+                       model.solve_fnopt(net, p, 1))
+    late = model.solve_fnopt(net, p, 4, two_level=4, two_level_from=1)
+    assert torch.isfinite(late).all()
+    assert not torch.equal(late, plain) and not torch.equal(late, on)
+    with pytest.raises(ValueError, match="two_level_from"):
+        model.solve_fnopt(net, p, 2, two_level=4, two_level_from=-1)
+    with pytest.raises(ValueError, match="two_level_from"):
+        model.solve_fnopt(net, p, 2, two_level_from=1)
+    with pytest.raises(TypeError, match="two_level_from"):
+        model.solve_fnopt(net, p, 2, two_level=4, two_level_from=1.0)
