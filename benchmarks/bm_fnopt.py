@@ -27,6 +27,9 @@ cached in benchmarks/results/fnopt_refs/):
   each case's FNOpt e_CD beside its floors (:func:`floor_table`);
 - ``sweep``: the width/modes sweep (from benchmarks/fnopt_sweep.py's JSON), charted;
 - ``stability``: a long FNOpt rollout (``--frames 500 --res 100``): finite and bounded.
+- ``fresh``: the ``--plan`` rows on 36 random cases (:func:`fresh_cases`: layouts, motions,
+  speeds and materials drawn from one seed, 24 at 64x64 and 12 at 100x100), medians over three
+  starts; how FNOpt's default step was chosen (session 19).
 - ``validation``: N = 10 rollouts of :data:`VALIDATION_CASES` (never a benchmark case) for
   each of ``--candidates`` (weight paths): how weights are chosen across seeds and settings.
 
@@ -62,14 +65,19 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))     # the split modules beside it
 
 from bm_fnopt_cases import (  # noqa: E402,F401  (re-exported: the tests and scripts use them)
+    FRESH_SEED,
+    FRESH_STARTS,
     SCREEN_TOL,
     SCREENED_VALIDATION_CASES,
     VALIDATION_CASES,
     _pins,
     chart_general,
     floor_table,
+    fresh_cases,
+    fresh_summary,
     general_cases,
     merge_general,
+    part_fresh,
     part_general,
     part_validation,
     screen_case,
@@ -78,6 +86,7 @@ from bm_fnopt_common import (  # noqa: E402,F401
     AUTOGRAD,
     EQUAL_ERROR_METRIC,
     FLOOR_PERTURB,
+    FNOPT_DEFAULT_ROW,
     LBFGS_NAMED,
     LBFGS_VARIANTS,
     NO_GRADIENT_OPTION,
@@ -111,6 +120,7 @@ from bm_fnopt_speedup import (  # noqa: E402,F401
     part_iters,
     part_lbfgs,
     part_ratio,
+    ratio_tag,
 )
 
 from draping import viz  # noqa: E402
@@ -137,21 +147,23 @@ def part_super(args, net) -> dict:
 def part_stability(args, net) -> dict:
     """A long FNOpt rollout (``--frames``, default use 500) at ``--res``: finite and bounded.
 
+    The step is ``polygeo simulate --optimizer fnopt``'s default (:data:`FNOPT_DEFAULT_ROW`).
+
     Recorded: whether every state is finite, the largest distance of a vertex from the
     handles' centroid (m; the sheet is 1 m wide), the largest edge length over its rest length
     (stretch), the largest per-frame ``L_cloth`` and the CPU ms per frame.
     """
     s = SimSettings(res=(args.res, args.res), handles=args.layout, motion=args.motion,
                     frames=args.frames, speed=args.speed)
-    ro, err, cpu = _rollout(s, _step("fnopt", 10, net))
+    ro, err, cpu = _rollout(s, _step(FNOPT_DEFAULT_ROW, 10, net))
     if ro is None:
-        return {"diverged": err}
+        return {"diverged": err, "row": FNOPT_DEFAULT_ROW}
     x = ro.positions
     sheet = s.sheet()
     hmid = ro.handles.mean(1)
     eu = (x[:, :, 1:] - x[:, :, :-1]).norm(dim=-1) / sheet.hx
     ev = (x[:, 1:] - x[:, :-1]).norm(dim=-1) / sheet.hy
-    return {"res": args.res, "layout": args.layout, "motion": args.motion,
+    return {"row": FNOPT_DEFAULT_ROW, "res": args.res, "layout": args.layout, "motion": args.motion,
             "speed": args.speed, "frames": args.frames,
             "finite": bool(torch.isfinite(x).all()),
             "max_distance_from_handles_m": float((x - hmid[:, None, None]).norm(dim=-1).max()),
@@ -214,7 +226,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--part", choices=("iters", "super", "general", "sweep", "lbfgs",
                                        "reference", "stability", "ratio", "validation",
-                                       "hard"),
+                                       "hard", "fresh"),
                     default="iters")
     ap.add_argument("--res", type=int, default=32)
     ap.add_argument("--frames", type=int, default=60)
@@ -226,6 +238,9 @@ def main() -> None:
                     "pairs, comma-separated, replacing the plan")
     ap.add_argument("--starts", type=int, default=1, help="iters / hard parts: each row the "
                     "median of this many starts (STARTS; 1: the unperturbed start only)")
+    ap.add_argument("--ratio-row", default=FNOPT_DEFAULT_ROW,
+                    help="ratio part: the FNOpt rows compared (default: the default step's, "
+                    f"{FNOPT_DEFAULT_ROW}; fnopt: the one-level step)")
     ap.add_argument("--ratio-res", default="32,64", help="ratio part: resolutions whose iters "
                     "JSON is read")
     ap.add_argument("--weights", default=None)
@@ -297,11 +312,13 @@ def main() -> None:
     rec.update({"iters": part_iters, "super": part_super, "general": part_general,
                 "lbfgs": part_lbfgs, "reference": part_reference,
                 "stability": part_stability, "ratio": part_ratio,
-                "validation": part_validation, "hard": part_hard}[args.part](args, net))
+                "validation": part_validation, "hard": part_hard,
+                "fresh": part_fresh}[args.part](args, net))
     rec.update(machine=platform.processor() or platform.machine(), python=platform.python_version(),
                date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                load_average=os.getloadavg())
-    tag = f"{args.part}_{args.res}" if args.part not in ("super", "ratio") else args.part
+    tag = f"{args.part}_{args.res}" if args.part not in ("super", "ratio", "fresh") else args.part
+    tag = ratio_tag(args.ratio_row) if args.part == "ratio" else tag
     tag += f"_{output_tag(args)}" if output_tag(args) else ""
     path = OUT / f"bm_fnopt_{tag}.json"
     if args.part == "general" and args.merge and path.is_file():

@@ -64,6 +64,84 @@ SCREENED_VALIDATION_CASES = tuple(VALIDATION_CASES[i] for i in (2, 3, 4, 5, 7)) 
     (_pins(1307, 5), "y-rev", 1.5), (_pins(1309, 3), "y", 1.2),
     (_pins(1310, 4), "z-rev", 1.3), (_pins(1312, 2), "xyz", 1.2))
 
+#: Seed of :func:`fresh_cases` (session 19's rule L9: drawn once, for choosing FNOpt's default
+#: step on inputs no earlier choice had seen).
+FRESH_SEED = 20261126
+#: Starts (m) of the ``fresh`` part: every other of :data:`STARTS`.
+FRESH_STARTS = (0.0, 1e-7, 1e-5)
+_NAMED = ("corners", "diagonal", "mid-edges", "corner-centre", "single")
+
+
+def fresh_cases(seed: int = FRESH_SEED, n64: int = 24, n100: int = 12) -> list:
+    """Random cases ``(res, frames, layout, motion, speed, Material)``: ``n64`` at 64x64 (60
+    frames), then ``n100`` at 100x100 (30 frames).
+
+    Per case, from one ``numpy.random.default_rng(seed)`` in this order: the layout uniform over
+    the five named layouts and a random pin set (1-5 pins uniform in the unit square), the
+    motion uniform over ``MOTIONS``, the speed uniform over 1.0, 1.1, ..., 2.0, and stretch /
+    shear / bend log-uniform in the authors' ranges ([100, 1000] N/m, [1, 100] N/m, [0.01, 10]
+    mJ; density and damping default).
+    """
+    from draping.fnopt.cloth import Material
+    from draping.fnopt.settings import MOTIONS
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n64 + n100):
+        k = int(rng.integers(6))
+        lay = _NAMED[k] if k < 5 else [tuple(round(float(v), 3) for v in pt)
+                                       for pt in rng.random((int(rng.integers(1, 6)), 2))]
+        mo = MOTIONS[int(rng.integers(len(MOTIONS)))]
+        sp = round(1.0 + 0.1 * int(rng.integers(11)), 1)
+        st, sh, be = (round(float(np.exp(rng.uniform(np.log(lo), np.log(hi)))), nd)
+                      for (lo, hi), nd in (((100, 1000), 2), ((1, 100), 3), ((0.01, 10), 4)))
+        res, frames = (64, 60) if i < n64 else (100, 30)
+        out.append((res, frames, lay, mo, sp, Material(stretch=st, shear=sh, bend=be)))
+    return out
+
+
+def part_fresh(args, net) -> dict:
+    """The ``--plan`` rows on :func:`fresh_cases` (``--cases``: indices), each the median of
+    e_CD over :data:`FRESH_STARTS`: how session 19 chose FNOpt's default step (rule L9).
+
+    Per plan row: the per-case medians, how many are <= 5 and their geometric mean.
+    """
+    from dataclasses import asdict
+
+    cases = fresh_cases()
+    idx = [int(i) for i in args.cases.split(",")] if args.cases else range(len(cases))
+    plan = [(name, int(n)) for name, n in (p.split(":") for p in args.plan.split(","))]
+    rec = {"seed": FRESH_SEED, "starts_m": list(FRESH_STARTS), "cases": [], "runs": []}
+    for i in idx:
+        res, frames, lay, mo, sp, mat = cases[i]
+        s = SimSettings(res=(res, res), handles=lay, motion=mo, frames=frames, speed=sp,
+                        material=mat)
+        rec["cases"].append({"case": i, "res": res, "frames": frames, "layout": lay,
+                             "motion": mo, "speed": sp, "material": asdict(mat)})
+        ref = reference_rollout(s, REFS)
+        for name, n in plan:
+            rows = [_measure(s, _step(name, n, net), ref, args.every, eps)
+                    for eps in FRESH_STARTS]
+            cd = [r.get("e_cd", math.inf) for r in rows]
+            r = {"case": i, "optimizer": name, "iters": n, "e_cd": float(np.median(cd)),
+                 "e_cd_starts": cd,
+                 "step_cpu_ms": float(np.median([r.get("step_cpu_ms", math.nan) for r in rows]))}
+            rec["runs"].append(r)
+            print(json.dumps(r), flush=True)
+    rec["summary"] = fresh_summary(rec["runs"])
+    return rec
+
+
+def fresh_summary(runs: list) -> dict:
+    """Per ``optimizer:iters``: the cases, how many medians are <= 5, their geometric mean."""
+    out = {}
+    for key in dict.fromkeys(f"{r['optimizer']}:{r['iters']}" for r in runs):
+        cd = [r["e_cd"] for r in runs if f"{r['optimizer']}:{r['iters']}" == key]
+        out[key] = {"cases": len(cd), "at_most_5": sum(c <= 5 for c in cd),
+                    "gmean_e_cd": float(np.exp(np.mean(np.log(cd))))}
+    return out
+
+
 #: Tolerance (m/s^2) of the looser reference in :func:`screen_case`: 100x REFERENCE_TOL.
 SCREEN_TOL = 5e-3
 

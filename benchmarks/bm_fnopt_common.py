@@ -15,7 +15,7 @@ import numpy as np
 
 from draping.fnopt import solvers
 from draping.fnopt.model import solve_fnopt
-from draping.fnopt.settings import COARSE_EVERY
+from draping.fnopt.settings import COARSE_EVERY, FNOPT_COARSE, FNOPT_COARSE_EVERY, FNOPT_COARSE_FROM
 from draping.fnopt.simulate import DEFAULT_LR, SimSettings, frame_metrics
 from draping.viz import plot_curves
 
@@ -78,7 +78,7 @@ AUTOGRAD = "-autograd"
 #: The rows without a gradient option, so without an ``-autograd`` variant: FNOpt and the
 #: DCT-metric methods take the step problem's own gradient and Hessian products.
 NO_GRADIENT_OPTION = ("fnopt", "fnopt-line", "pgd", "pcg", "pcg-n", "pcg-nc", "fnopt-nc",
-                      "fnopt-nc1", "fnopt-nc4")
+                      "fnopt-nc1", "fnopt-nc4", "fnopt-2l")
 
 #: The two-level row ``pcg-nc``: ``pcg-n`` plus the Galerkin coarse correction on a grid of
 #: this many vertices (longer side), rebuilt every :data:`TWO_LEVEL_EVERY` frames; ``fnopt-nc``:
@@ -89,6 +89,11 @@ TWO_LEVEL_COARSE = 16
 TWO_LEVEL_EVERY = COARSE_EVERY      # ``polygeo simulate --coarse``'s default rebuild period
 #: The rebuild period of each FNOpt two-level row.
 FNOPT_TWO_LEVEL_ROWS = {"fnopt-nc": TWO_LEVEL_EVERY, "fnopt-nc1": 1, "fnopt-nc4": 4}
+#: ``polygeo simulate --optimizer fnopt``'s default step since session 19: the ``fnopt-nc4``
+#: direction (:data:`~draping.fnopt.settings.FNOPT_COARSE` every ``FNOPT_COARSE_EVERY`` frames)
+#: joining from inner iteration ``FNOPT_COARSE_FROM`` on. The ``fnopt`` rows are the one-level
+#: step (``--coarse 0``).
+FNOPT_DEFAULT_ROW = "fnopt-2l"
 
 #: "Equal error": the metric compared (mean over the rollout's measured frames). e_3D, not
 #: e_CD: e_CD x 1e3 with 10k samples has a sampling floor of about 0.13 that every converged
@@ -123,10 +128,14 @@ def _step(name: str, n: int, net=None, lr=None, fno: dict | None = None, **kw):
     if name in FNOPT_TWO_LEVEL_ROWS:  # the fnopt row with its two-level options
         return _step("fnopt", n, net, fno={"two_level": TWO_LEVEL_COARSE,
                                            "two_level_every": FNOPT_TWO_LEVEL_ROWS[name]})
+    if name == FNOPT_DEFAULT_ROW:
+        return _step("fnopt", n, net, fno={"two_level": FNOPT_COARSE,
+                                           "two_level_every": FNOPT_COARSE_EVERY,
+                                           "two_level_from": FNOPT_COARSE_FROM})
     if name == "fnopt":
         fno = fno or {}
         memory = {}                 # the recycled basis / coarse space between frames
-        return lambda p, a0: solve_fnopt(net, p, n, memory=memory, **fno)
+        return _keeping(lambda p, a0: solve_fnopt(net, p, n, memory=memory, **fno), memory)
     if name == "fnopt-line":
         return lambda p, a0: solve_fnopt(net, p, n, step="line")
     if name == "pgd":
@@ -139,9 +148,10 @@ def _step(name: str, n: int, net=None, lr=None, fno: dict | None = None, **kw):
     if name == "pcg-nc":            # pcg-n + the two-level coarse correction (fnopt.twolevel)
         split = net.config.normal_split if net is not None else 0
         coarse = {}                 # the coarse space between frames
-        return lambda p, a0: solvers.solve_pcg(p, n, normal=True, split=split,
-                                               coarse=TWO_LEVEL_COARSE,
-                                               coarse_every=TWO_LEVEL_EVERY, memory=coarse)
+        return _keeping(lambda p, a0: solvers.solve_pcg(p, n, normal=True, split=split,
+                                                        coarse=TWO_LEVEL_COARSE,
+                                                        coarse_every=TWO_LEVEL_EVERY,
+                                                        memory=coarse), coarse)
     if name == "lbfgs":
         return lambda p, a0: solvers.solve_lbfgs(p, n, step=lr or 1.0,
                                                  **{"fused_grad": True, **kw})
@@ -170,11 +180,23 @@ def _rollout(s: SimSettings, step, perturb: float = 0.0, **kw):
     return ro, None, time.process_time() - t0
 
 
+def _keeping(step, memory: dict):
+    """``step`` with the dict it keeps between frames attached (``step.memory``), so that
+    :func:`_measure` can empty it after its untimed warm-up frame."""
+    step.memory = memory
+    return step
+
+
 def _measure(s: SimSettings, step, ref, every: int, perturb: float = 0.0, **kw) -> dict:
     # one untimed frame first: the process's one-time warm-up (numba loading its cached
     # kernels, the DFT / DCT matrix caches: ~0.6 s) is no per-frame cost; charged to the first
-    # timed row it had inflated FNOpt N = 3 by ~9 ms per frame at 32x32 (60 frames)
+    # timed row it had inflated FNOpt N = 3 by ~9 ms per frame at 32x32 (60 frames). What the
+    # step keeps between frames (``step.memory``: a recycled basis, a coarse space and its age)
+    # is emptied after it, so the measured rollout starts as ``polygeo simulate``'s does (until
+    # session 19 it did not: the two-level rows were rebuilt one frame out of the CLI's phase)
     _rollout(dataclasses.replace(s, frames=1), step, perturb, **kw)
+    if getattr(step, "memory", None) is not None:
+        step.memory.clear()
     ro, err, cpu = _rollout(s, step, perturb, **kw)
     if ro is None:
         return {"diverged": err, "cpu_ms_per_frame": 1e3 * cpu / s.frames}

@@ -13,6 +13,7 @@ import time
 
 from bm_fnopt_common import (
     EQUAL_ERROR_METRIC,
+    FNOPT_DEFAULT_ROW,
     LBFGS_VARIANTS,
     OUT,
     PRECONDITIONED,
@@ -230,11 +231,18 @@ RATIO_COLORS = {"fnopt": "C0", "pcg": "C1", "pcg-n": "C2", "lbfgs": "C3", "lbfgs
                 "lbfgs-autograd": "C9"}
 
 
+def ratio_tag(row: str) -> str:
+    """The ratio part's output name: ``ratio`` for FNOpt's default row, ``ratio_<row>`` else."""
+    return "ratio" if row == FNOPT_DEFAULT_ROW else f"ratio_{row}"
+
+
 def part_ratio(args, net) -> dict:
     """FNOpt's speed-up over the L-BFGS variants at equal error along its curve (``iters`` JSONs).
 
     Per resolution of ``--ratio-res``: for each L-BFGS variant present, the speed-up of every
-    FNOpt N (:func:`equal_error_speedup`, e_3D, the optimisers' own CPU ms per frame); the
+    FNOpt N of the ``--ratio-row`` rows (default :data:`FNOPT_DEFAULT_ROW`, ``polygeo
+    simulate``'s FNOpt; ``fnopt``: the one-level step) (:func:`equal_error_speedup`, e_3D, the
+    optimisers' own CPU ms per frame); the
     *baseline* is the variant needing the least time at FNOpt N = 10's error (the strongest);
     ``baseline_unpreconditioned`` the same among the variants without FNOpt's DCT
     preconditioner (the thesis' kind of baseline).
@@ -243,11 +251,14 @@ def part_ratio(args, net) -> dict:
     out-of-plane direction(s) of weights trained with them). ``thesis_lbfgs``: the thesis'
     L-BFGS configuration (:data:`THESIS_LBFGS`), labelled beside the strongest.
     """
-    rec = {"metric": EQUAL_ERROR_METRIC, "cost": "step_cpu_ms", "res": {}}
+    row = args.ratio_row
+    rec = {"metric": EQUAL_ERROR_METRIC, "cost": "step_cpu_ms", "row": row, "res": {}}
     for res in (int(v) for v in args.ratio_res.split(",")):
         it = json.loads((OUT / f"bm_fnopt_iters_{res}.json").read_text())
         runs = [r for r in it["runs"] if "e_cd" in r]
-        fast = sorted((r for r in runs if r["optimizer"] == "fnopt"), key=lambda r: r["iters"])
+        fast = sorted((r for r in runs if r["optimizer"] == row), key=lambda r: r["iters"])
+        if not fast:
+            raise ValueError(f"--ratio-row: no {row!r} rows in bm_fnopt_iters_{res}.json")
         names = sorted({r["optimizer"] for r in runs if r["optimizer"].startswith("lbfgs")})
         per = {}
         for name in names:
@@ -273,12 +284,12 @@ def part_ratio(args, net) -> dict:
     fig, axes = plt.subplots(1, len(keys), figsize=(5.5 * len(keys), 4), dpi=100, squeeze=False)
     for ax, res in zip(axes[0], keys):
         it = json.loads((OUT / f"bm_fnopt_iters_{res}.json").read_text())
-        for name in ["fnopt", "pcg", "pcg-n"] + list(rec["res"][res]["speedup"]):
+        for name in [row, "pcg", "pcg-n"] + list(rec["res"][res]["speedup"]):
             rs = sorted((r for r in it["runs"] if r["optimizer"] == name and "e_3d" in r),
                         key=lambda r: r["iters"])
             if rs:
                 ax.plot([r["step_cpu_ms"] for r in rs], [r["e_3d"] for r in rs], marker="o",
-                        ms=3, label=name, lw=2.5 if name == "fnopt" else 1.2,
+                        ms=3, label=name, lw=2.5 if name == row else 1.2,
                         color=RATIO_COLORS.get(name))
         ax.set_xscale("log")
         ax.set_yscale("log")
@@ -289,17 +300,18 @@ def part_ratio(args, net) -> dict:
         for key, tag in (("baseline", "strongest"), ("baseline_unpreconditioned",
                                                      "fastest un-preconditioned"),
                          ("thesis_lbfgs", "thesis config")):
-            tags.setdefault(rec["res"][res][key], []).append(tag)
+            if rec["res"][res][key] is not None:    # None: no variant reaches FNOpt-10's error
+                tags.setdefault(rec["res"][res][key], []).append(tag)
         for base, tag in tags.items():
             sp = [q for q in rec["res"][res]["speedup"].get(base, []) if q["bound"] == "="]
             lines.append(f"vs {base} ({', '.join(tag)}): " + ", ".join(
                 f"N{q['iters']} {q['speedup']:.1f}x" for q in sp))
-        ax.set_title(f"{res}x{res}, speed-up of FNOpt at equal e_3D\n" + "\n".join(lines),
+        ax.set_title(f"{res}x{res}, speed-up of {row} at equal e_3D\n" + "\n".join(lines),
                      fontsize=7)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(OUT / "bm_fnopt_ratio.png")
+    fig.savefig(OUT / f"bm_fnopt_{ratio_tag(row)}.png")
     plt.close(fig)
     return rec
 

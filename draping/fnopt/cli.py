@@ -98,7 +98,15 @@ def run_train(args: argparse.Namespace) -> int:
 
 def register_simulate(sub: argparse._SubParsersAction) -> None:
     """Add ``simulate``."""
-    from .settings import COARSE_EVERY, LAYOUTS, MOTIONS, OPTIMIZERS
+    from .settings import (
+        COARSE_EVERY,
+        FNOPT_COARSE,
+        FNOPT_COARSE_EVERY,
+        FNOPT_COARSE_FROM,
+        LAYOUTS,
+        MOTIONS,
+        OPTIMIZERS,
+    )
 
     p = sub.add_parser(
         "simulate",
@@ -137,13 +145,16 @@ def register_simulate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fno-every", type=int, default=1,
                    help="fnopt: the FNO's proposal on every E-th iteration only, the classical "
                    "step between (E >= --iters: the first iteration only; default 1)")
-    p.add_argument("--coarse", type=int, default=0,
-                   help="pcg, fnopt: add the two-level coarse correction (the step's Hessian on "
-                   "the grid whose longer side has K vertices; fnopt: the shipped weights were "
-                   "not trained with it; 0: off; default 0)")
-    p.add_argument("--coarse-every", type=int, default=COARSE_EVERY,
-                   help="with --coarse: rebuild the coarse space every F frames (1: every "
-                   f"frame; default {COARSE_EVERY})")
+    p.add_argument("--coarse", type=int, default=None,
+                   help="pcg, fnopt: the two-level coarse correction (the step's Hessian on the "
+                   "grid whose longer side has K vertices; 0: off; default fnopt "
+                   f"{FNOPT_COARSE}, pcg 0)")
+    p.add_argument("--coarse-every", type=int, default=None,
+                   help="with a coarse grid: rebuild the coarse space every F frames (1: every "
+                   f"frame; default fnopt {FNOPT_COARSE_EVERY}, pcg {COARSE_EVERY})")
+    p.add_argument("--coarse-from", type=int, default=None,
+                   help="fnopt with a coarse grid: the coarse direction joins inner iterations "
+                   f"k >= this (0: every iteration; default {FNOPT_COARSE_FROM})")
     p.add_argument("--lr", type=float, default=None,
                    help="gd/adam step size, lbfgs step scale (default gd: per sheet the "
                    "stable step from a curvature bound, adam 0.1, lbfgs 1.0)")
@@ -179,7 +190,7 @@ def run_simulate(args: argparse.Namespace) -> int:
                     material=Material(args.stretch, args.shear, args.bend),
                     repulsion=args.repulsion, fno_coarse=args.fno_coarse,
                     recycle=args.recycle, fno_every=args.fno_every, coarse=args.coarse,
-                    coarse_every=args.coarse_every)
+                    coarse_every=args.coarse_every, coarse_from=args.coarse_from)
     model = None
     if args.weights is not None:
         if s.optimizer != "fnopt":

@@ -37,6 +37,15 @@ OPTIMIZERS = ("fnopt", "gd", "adam", "lbfgs", "pcg", "reference")
 #: ``solve_fnopt(two_level_every=...)``; its build costs about 20 PCG iterations at 64x64).
 COARSE_EVERY = 8
 
+#: ``polygeo simulate --optimizer fnopt``'s default two-level coarse direction (``--coarse 0``:
+#: off): the coarse grid's longer side (``SimSettings.coarse``), its rebuild period in frames
+#: (``coarse_every``) and the first inner iteration it joins (``coarse_from``; iteration 0 is the
+#: FNO's and the classical directions' alone). Chosen in session 19 on cases drawn for the
+#: choice only (``docs/measurements/fnopt.md``, rules L9 / L9b).
+FNOPT_COARSE = 16
+FNOPT_COARSE_EVERY = 4
+FNOPT_COARSE_FROM = 1
+
 #: Handle distributions of the training pool (see :func:`draping.fnopt.train.random_handles`).
 HANDLE_DISTRIBUTIONS = ("random", "corners-interior", "folding")
 

@@ -24,7 +24,7 @@ from .classical import CLASSICAL, REFERENCE_TOL, solve_pcg, solve_reference
 from .coarse import check_grid_option
 from .handles import DT, check_motion
 from .rollouts import Rollout, rollout
-from .settings import COARSE_EVERY, OPTIMIZERS
+from .settings import COARSE_EVERY, FNOPT_COARSE, FNOPT_COARSE_EVERY, FNOPT_COARSE_FROM, OPTIMIZERS
 
 __all__ = ["SimSettings", "OPTIMIZERS", "DEFAULT_LR", "PCG_NORMAL_SPLIT", "step_function", "run",
            "e_cd", "frame_metrics", "reference_rollout", "write_outputs"]
@@ -53,11 +53,14 @@ class SimSettings:
     ``fno_every``-th iteration only, the classical step between (``solve_fnopt(fno_every=...)``).
     ``optimizer="pcg"``: FNOpt's step without the FNO, ``iters`` iterations of PCG with the
     normal directions (:data:`PCG_NORMAL_SPLIT`); ``lr`` is not used (exact subspace steps).
-    ``coarse`` (``pcg`` or ``fnopt``; 0, the default: off): add the two-level coarse
-    correction on the grid whose longer side has this many vertices (``solve_pcg(coarse=...)``,
-    ``solve_fnopt(two_level=...)``, :mod:`draping.fnopt.twolevel`), rebuilt every
-    ``coarse_every`` frames (default :data:`COARSE_EVERY`); with ``fnopt`` the shipped weights
-    were not trained with it.
+    ``coarse`` (``pcg`` or ``fnopt``): the two-level coarse correction on the grid whose longer
+    side has this many vertices (``solve_pcg(coarse=...)``, ``solve_fnopt(two_level=...)``,
+    :mod:`draping.fnopt.twolevel`; 0: off), rebuilt every ``coarse_every`` frames, joining the
+    inner iterations ``k >= coarse_from`` (``fnopt`` only; ``solve_fnopt(two_level_from=...)``).
+    ``None`` (the defaults) resolves per optimiser: ``fnopt`` :data:`FNOPT_COARSE` every
+    :data:`FNOPT_COARSE_EVERY` frames from iteration :data:`FNOPT_COARSE_FROM` (FNOpt's default
+    step; the shipped weights were trained without it), every other optimiser off (``pcg`` with
+    a ``coarse``: every :data:`COARSE_EVERY` frames, from iteration 0).
     """
 
     res: tuple = (64, 64)
@@ -75,8 +78,9 @@ class SimSettings:
     fno_coarse: int = 0
     recycle: int = 0
     fno_every: int = 1
-    coarse: int = 0
-    coarse_every: int = COARSE_EVERY
+    coarse: int | None = None
+    coarse_every: int | None = None
+    coarse_from: int | None = None
 
     def __post_init__(self) -> None:
         if self.optimizer not in OPTIMIZERS:
@@ -95,11 +99,26 @@ class SimSettings:
 
         check_recycle(self.recycle)
         check_fno_every(self.fno_every)
+        self._resolve_coarse()
+
+    def _resolve_coarse(self) -> None:
+        """Check the two-level fields; ``None``: the optimiser's default."""
+        fnopt = self.optimizer == "fnopt"
+        if self.coarse is None:
+            self.coarse = FNOPT_COARSE if fnopt else 0
         check_grid_option(self.coarse, "coarse")
         if self.coarse and self.optimizer not in ("pcg", "fnopt"):
             raise ValueError(f"coarse: {self.coarse} needs optimizer 'pcg' or 'fnopt', got "
                              f"{self.optimizer!r}")
+        if self.coarse_every is None:
+            self.coarse_every = FNOPT_COARSE_EVERY if fnopt else COARSE_EVERY
         check_int(self.coarse_every, "coarse_every", low=1)
+        if self.coarse_from is None:
+            self.coarse_from = FNOPT_COARSE_FROM if fnopt and self.coarse else 0
+        check_int(self.coarse_from, "coarse_from", low=0)
+        if self.coarse_from and not (fnopt and self.coarse):
+            raise ValueError(f"coarse_from: {self.coarse_from} needs optimizer 'fnopt' with a "
+                             f"coarse grid (got {self.optimizer!r}, coarse {self.coarse})")
 
     def sheet(self) -> cloth.Sheet:
         """The grid sheet."""
@@ -109,7 +128,7 @@ class SimSettings:
         """What the reference rollout depends on."""
         d = asdict(self)
         for k in ("optimizer", "iters", "lr", "fno_coarse", "recycle", "fno_every", "coarse",
-                  "coarse_every"):
+                  "coarse_every", "coarse_from"):
             d.pop(k)
         return d
 
@@ -135,8 +154,8 @@ def step_function(settings: SimSettings, model=None):
 
         net = model if model is not None else load_pretrained()
         k, r, e, memory = settings.fno_coarse, settings.recycle, settings.fno_every, {}
-        two = {"two_level": settings.coarse, "two_level_every": settings.coarse_every} \
-            if settings.coarse else {}
+        two = {"two_level": settings.coarse, "two_level_every": settings.coarse_every,
+               "two_level_from": settings.coarse_from} if settings.coarse else {}
         return lambda p, a0: solve_fnopt(net, p, n, coarse_res=k, recycle=r, memory=memory,
                                          fno_every=e, **two)
     if name == "pcg":

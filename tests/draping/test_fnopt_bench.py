@@ -328,3 +328,64 @@ def test_fnopt_two_level_rows_are_the_two_level_solve(bm, monkeypatch):
                                               fno_every=1, two_level=4, two_level_every=4))
     step = bm._step("fnopt", 3, net, fno=opts)
     assert all(torch.equal(step(p, None), out) for p, out in zip(probs, got["fnopt-nc4"]))
+
+
+def test_fresh_cases_are_seeded_draws_in_the_stated_ranges(bm):
+    """``fresh_cases``: 24 cases at 64x64 (60 frames) then 12 at 100x100 (30 frames); layouts
+    named or 1-5 pins in the unit square, known motions, speeds 1.0-2.0 in steps of 0.1,
+    materials inside the authors' ranges; the same seed draws the same cases, another seed others;
+    every case builds a ``SimSettings``."""
+    from dataclasses import asdict
+
+    from draping.fnopt.settings import MOTIONS
+    from draping.fnopt.simulate import SimSettings
+
+    cases = bm.fresh_cases()
+    assert [c[:2] for c in cases] == [(64, 60)] * 24 + [(100, 30)] * 12
+    for res, frames, lay, mo, sp, mat in cases:
+        if isinstance(lay, str):
+            assert lay in ("corners", "diagonal", "mid-edges", "corner-centre", "single")
+        else:
+            assert 1 <= len(lay) <= 5 and all(0 <= u <= 1 and 0 <= v <= 1 for u, v in lay)
+        assert mo in MOTIONS and 1.0 <= sp <= 2.0 and round(sp * 10) == sp * 10
+        assert 100 <= mat.stretch <= 1000 and 1 <= mat.shear <= 100 and 0.01 <= mat.bend <= 10
+        SimSettings(res=(res, res), handles=lay, motion=mo, frames=frames, speed=sp, material=mat)
+    again = bm.fresh_cases()
+    assert [(c[:5], asdict(c[5])) for c in again] == [(c[:5], asdict(c[5])) for c in cases]
+    other = bm.fresh_cases(seed=bm.FRESH_SEED + 1)
+    assert [asdict(c[5]) for c in other] != [asdict(c[5]) for c in cases]
+    assert len({c[3] for c in cases}) > 5          # the draw covers many motions
+
+
+def test_fresh_summary_counts_and_geometric_mean(bm):
+    runs = [{"optimizer": "a", "iters": 10, "e_cd": v} for v in (1.0, 4.0, 16.0)] + \
+        [{"optimizer": "b", "iters": 10, "e_cd": v} for v in (5.0, 5.0000001)]
+    got = bm.fresh_summary(runs)
+    assert got["a:10"] == {"cases": 3, "at_most_5": 2, "gmean_e_cd": pytest.approx(4.0)}
+    assert got["b:10"]["at_most_5"] == 1 and got["b:10"]["cases"] == 2
+
+
+def test_measure_starts_the_timed_rollout_with_an_empty_memory(bm):
+    """``_measure``'s untimed warm-up frame must not leak into the measured rollout: what a step
+    keeps between frames (``step.memory``) is emptied after it, so a two-level row rebuilds its
+    coarse space in ``polygeo simulate``'s phase. A counting step sees only the measured frames;
+    the rows that keep a memory expose it."""
+    from fnopt_cases import tiny_fno
+
+    from draping.fnopt import solvers
+    from draping.fnopt.simulate import SimSettings, reference_rollout
+
+    common = sys.modules[bm._step.__module__]
+    s = SimSettings(res=(6, 6), frames=3, optimizer="pcg")
+    ref = reference_rollout(s)
+    memory = {}
+
+    def counting(p, a0):
+        memory["calls"] = memory.get("calls", 0) + 1
+        return solvers.solve_pcg(p, 3)
+
+    out = bm._measure(s, common._keeping(counting, memory), ref, 1)
+    assert "e_cd" in out and memory["calls"] == s.frames          # not frames + 1
+    net = tiny_fno(normal=True)
+    for name in ("fnopt", common.FNOPT_DEFAULT_ROW, "fnopt-nc4", "pcg-nc"):
+        assert isinstance(bm._step(name, 2, net).memory, dict), name

@@ -167,10 +167,13 @@ def test_trained_optimizer_lowers_the_loss_on_an_unseen_random_layout_at_64():
 
 @pytest.mark.slow
 def test_500_frame_rollout_at_100_is_finite_and_bounded():
+    """``polygeo simulate``'s default FNOpt step (with the two-level coarse direction)."""
+    from draping.fnopt.simulate import SimSettings, step_function
+
     net = _pretrained()
     sheet = Sheet(100, 100)
-    ro = solvers.rollout(sheet, Material(), "corners", "xyz", 500,
-                         lambda p, a0: model.solve_fnopt(net, p, 10), speed=1.5)
+    step = step_function(SimSettings(res=(100, 100)), net)
+    ro = solvers.rollout(sheet, Material(), "corners", "xyz", 500, step, speed=1.5)
     x = ro.positions
     assert bool(torch.isfinite(x).all())
     # bounded: the sheet stays within its size of the handles, edges within 1.5x rest

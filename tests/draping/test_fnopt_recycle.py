@@ -143,13 +143,15 @@ def test_recycle_needs_memory_and_the_subspace_step():
 
 def test_simulate_carries_the_basis_across_frames():
     net = _net(0, dtype=torch.float32)
-    s = SimSettings(res=(10, 10), handles="diagonal", motion="xyz", frames=5, recycle=2)
+    s = SimSettings(res=(10, 10), handles="diagonal", motion="xyz", frames=5, recycle=2,
+                    coarse=0)                          # the one-level step's options
     got = run(s, model=net)
     memory = {}
     want = solvers.rollout(s.sheet(), s.material, s.handles, s.motion, s.frames,
                            lambda p, a0: model.solve_fnopt(net, p, s.iters, recycle=2,
                                                            memory=memory), s.speed)
-    plain = run(SimSettings(res=(10, 10), handles="diagonal", motion="xyz", frames=5), model=net)
+    plain = run(SimSettings(res=(10, 10), handles="diagonal", motion="xyz", frames=5, coarse=0),
+                model=net)
     assert torch.equal(got.positions, want.positions)
     assert not torch.equal(got.positions, plain.positions)
     assert "recycle" not in s.key()
@@ -231,7 +233,7 @@ def test_fno_every_needs_the_subspace_step_and_inference():
 def test_simulate_passes_fno_every_and_checks_it():
     net = _net(0, dtype=torch.float32)
     s = SimSettings(res=(10, 10), handles="diagonal", motion="xyz", frames=4, iters=6,
-                    fno_every=6)
+                    fno_every=6, coarse=0)
     want = solvers.rollout(s.sheet(), s.material, s.handles, s.motion, s.frames,
                            lambda p, a0: model.solve_fnopt(net, p, 6, fno_every=6), s.speed)
     assert torch.equal(run(s, model=net).positions, want.positions)

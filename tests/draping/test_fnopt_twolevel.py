@@ -207,15 +207,17 @@ def test_simulate_pcg_with_coarse():
 
 
 def test_simulate_fnopt_with_coarse():
-    """``polygeo simulate --optimizer fnopt --coarse K [--coarse-every F]``: over three frames of
-    a rollout the settings' step is ``solve_fnopt(two_level=K, two_level_every=F)`` (default
-    ``COARSE_EVERY``) with one memory kept across the frames (so the coarse space is kept, not
-    rebuilt per frame, unless F = 1), bit for bit; ``coarse=0`` (the default) is the plain FNOpt
-    solve; the reference's key depends on neither; a bad K or F raises."""
+    """``polygeo simulate --optimizer fnopt --coarse K [--coarse-every F] [--coarse-from J]``:
+    over three frames of a rollout the settings' step is ``solve_fnopt(two_level=K,
+    two_level_every=F, two_level_from=J)`` (defaults ``FNOPT_COARSE_EVERY`` and
+    ``FNOPT_COARSE_FROM``) with one memory kept across the frames (so the coarse space is kept,
+    not rebuilt per frame, unless F = 1), bit for bit; ``coarse=0`` is the one-level FNOpt
+    solve; the reference's key depends on none of them; a bad K or F raises."""
     from fnopt_cases import tiny_fno
 
     from draping.fnopt import model
-    from draping.fnopt.simulate import COARSE_EVERY, SimSettings, step_function
+    from draping.fnopt.settings import FNOPT_COARSE_EVERY, FNOPT_COARSE_FROM
+    from draping.fnopt.simulate import SimSettings, step_function
 
     net = tiny_fno(normal=True)
     s = SimSettings(res=(10, 12), optimizer="fnopt", iters=3, coarse=4)
@@ -223,19 +225,21 @@ def test_simulate_fnopt_with_coarse():
     probs = [random_problem(10, torch.float32, seed, layout="diagonal") for seed in (4, 5, 6)]
     for p in probs:
         want = model.solve_fnopt(net, p, 3, memory=mem, two_level=4,
-                                 two_level_every=COARSE_EVERY)
+                                 two_level_every=FNOPT_COARSE_EVERY,
+                                 two_level_from=FNOPT_COARSE_FROM)
         assert torch.equal(step(p, None), want)
-    s1, mem1 = SimSettings(res=(10, 12), optimizer="fnopt", iters=3, coarse=4, coarse_every=1), {}
-    step1 = step_function(s1, net)
+    s1 = SimSettings(res=(10, 12), optimizer="fnopt", iters=3, coarse=4, coarse_every=1,
+                     coarse_from=0)
+    step1, mem1 = step_function(s1, net), {}
     for p in probs:                              # --coarse-every 1: rebuilt every frame
         want = model.solve_fnopt(net, p, 3, memory=mem1, two_level=4, two_level_every=1)
         assert torch.equal(step1(p, None), want)
     assert s1.key() == s.key()
-    off = step_function(SimSettings(res=(10, 12), optimizer="fnopt", iters=3), net)
+    off = step_function(SimSettings(res=(10, 12), optimizer="fnopt", iters=3, coarse=0), net)
     assert torch.equal(off(probs[0], None), model.solve_fnopt(net, probs[0], 3))
     assert not torch.equal(off(probs[0], None), model.solve_fnopt(net, probs[0], 3,
                                                                   two_level=4))
-    assert s.key() == SimSettings(res=(10, 12), optimizer="fnopt", iters=3).key()
+    assert s.key() == SimSettings(res=(10, 12), optimizer="fnopt", iters=3, coarse=0).key()
     with pytest.raises(ValueError, match="coarse"):
         SimSettings(optimizer="fnopt", coarse=1)
     with pytest.raises(ValueError, match="coarse_every"):
