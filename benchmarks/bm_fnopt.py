@@ -317,8 +317,8 @@ def main() -> None:
     rec.update(machine=platform.processor() or platform.machine(), python=platform.python_version(),
                date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                load_average=os.getloadavg())
-    tag = f"{args.part}_{args.res}" if args.part not in ("super", "ratio", "fresh") else args.part
-    tag = ratio_tag(args.ratio_row) if args.part == "ratio" else tag
+    tag = {"super": "super", "fresh": "fresh", "ratio": ratio_tag(args.ratio_row)}.get(
+        args.part, f"{args.part}_{args.res}")
     tag += f"_{output_tag(args)}" if output_tag(args) else ""
     path = OUT / f"bm_fnopt_{tag}.json"
     if args.part == "general" and args.merge and path.is_file():

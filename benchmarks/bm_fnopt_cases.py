@@ -20,6 +20,7 @@ from bm_fnopt_common import (
     ROOT,
     _fno_options,
     _measure,
+    _measure_starts,
     _plt,
     _step,
 )
@@ -120,12 +121,12 @@ def part_fresh(args, net) -> dict:
                              "motion": mo, "speed": sp, "material": asdict(mat)})
         ref = reference_rollout(s, REFS)
         for name, n in plan:
-            rows = [_measure(s, _step(name, n, net), ref, args.every, eps)
-                    for eps in FRESH_STARTS]
-            cd = [r.get("e_cd", math.inf) for r in rows]
+            m = _measure_starts(s, lambda name=name, n=n: _step(name, n, net), ref, args.every,
+                                perturbs=FRESH_STARTS)
+            cd = [math.inf if q["e_cd"] is None else q["e_cd"] for q in m["starts"]]
+            ms = [math.nan if q["step_cpu_ms"] is None else q["step_cpu_ms"] for q in m["starts"]]
             r = {"case": i, "optimizer": name, "iters": n, "e_cd": float(np.median(cd)),
-                 "e_cd_starts": cd,
-                 "step_cpu_ms": float(np.median([r.get("step_cpu_ms", math.nan) for r in rows]))}
+                 "e_cd_starts": cd, "step_cpu_ms": float(np.median(ms))}
             rec["runs"].append(r)
             print(json.dumps(r), flush=True)
     rec["summary"] = fresh_summary(rec["runs"])

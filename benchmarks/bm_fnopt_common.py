@@ -15,7 +15,7 @@ import numpy as np
 
 from draping.fnopt import solvers
 from draping.fnopt.model import solve_fnopt
-from draping.fnopt.settings import COARSE_EVERY, FNOPT_COARSE, FNOPT_COARSE_EVERY, FNOPT_COARSE_FROM
+from draping.fnopt.settings import COARSE_EVERY
 from draping.fnopt.simulate import DEFAULT_LR, SimSettings, frame_metrics
 from draping.viz import plot_curves
 
@@ -89,10 +89,9 @@ TWO_LEVEL_COARSE = 16
 TWO_LEVEL_EVERY = COARSE_EVERY      # ``polygeo simulate --coarse``'s default rebuild period
 #: The rebuild period of each FNOpt two-level row.
 FNOPT_TWO_LEVEL_ROWS = {"fnopt-nc": TWO_LEVEL_EVERY, "fnopt-nc1": 1, "fnopt-nc4": 4}
-#: ``polygeo simulate --optimizer fnopt``'s default step since session 19: the ``fnopt-nc4``
-#: direction (:data:`~draping.fnopt.settings.FNOPT_COARSE` every ``FNOPT_COARSE_EVERY`` frames)
-#: joining from inner iteration ``FNOPT_COARSE_FROM`` on. The ``fnopt`` rows are the one-level
-#: step (``--coarse 0``).
+#: ``polygeo simulate --optimizer fnopt``'s default step since session 19 (the options of a
+#: default ``SimSettings``: the ``fnopt-nc4`` direction joining from inner iteration
+#: ``FNOPT_COARSE_FROM`` on). The ``fnopt`` rows are the one-level step (``--coarse 0``).
 FNOPT_DEFAULT_ROW = "fnopt-2l"
 
 #: "Equal error": the metric compared (mean over the rollout's measured frames). e_3D, not
@@ -129,9 +128,7 @@ def _step(name: str, n: int, net=None, lr=None, fno: dict | None = None, **kw):
         return _step("fnopt", n, net, fno={"two_level": TWO_LEVEL_COARSE,
                                            "two_level_every": FNOPT_TWO_LEVEL_ROWS[name]})
     if name == FNOPT_DEFAULT_ROW:
-        return _step("fnopt", n, net, fno={"two_level": FNOPT_COARSE,
-                                           "two_level_every": FNOPT_COARSE_EVERY,
-                                           "two_level_from": FNOPT_COARSE_FROM})
+        return _step("fnopt", n, net, fno=SimSettings().two_level_options())
     if name == "fnopt":
         fno = fno or {}
         memory = {}                 # the recycled basis / coarse space between frames
@@ -219,8 +216,12 @@ MEDIAN_FIELDS = ("e_cd", "e_3d", "e_cd_last", "L_cloth", "cpu_ms_per_frame", "st
                  "step_wall_ms")
 
 
-def _measure_starts(s: SimSettings, make_step, ref, every: int, starts: int = 1) -> dict:
+def _measure_starts(s: SimSettings, make_step, ref, every: int, starts: int = 1,
+                    perturbs: tuple | None = None) -> dict:
     """:func:`_measure` over the first ``starts`` of :data:`STARTS`, a fresh step each.
+
+    ``perturbs`` (m): these starts instead (``starts`` is then not used, and one start is a
+    median of one, not the plain row).
 
     ``make_step()`` returns a new ``(problem, a0) -> a`` step (an FNOpt row's recycled memory
     must not cross starts). ``starts = 1``: :func:`_measure` of the unperturbed start, the row as
@@ -234,12 +235,15 @@ def _measure_starts(s: SimSettings, make_step, ref, every: int, starts: int = 1)
     ValueError
         If ``starts`` is not in 1..len(STARTS).
     """
-    if not 1 <= starts <= len(STARTS):
-        raise ValueError(f"starts: expected 1..{len(STARTS)}, got {starts}")
-    if starts == 1:
-        return _measure(s, make_step(), ref, every)
+    if perturbs is None:
+        if not 1 <= starts <= len(STARTS):
+            raise ValueError(f"starts: expected 1..{len(STARTS)}, got {starts}")
+        if starts == 1:
+            return _measure(s, make_step(), ref, every)
+        perturbs = STARTS[:starts]
+    starts = len(perturbs)
     rows = [dict(_measure(s, make_step(), ref, every, pert), perturb_m=pert)
-            for pert in STARTS[:starts]]
+            for pert in perturbs]
     bad = [r for r in rows if "diverged" in r]
     per = [{k: r.get(k) for k in ("perturb_m", *START_FIELDS)} for r in rows]
     if bad:

@@ -120,6 +120,13 @@ class SimSettings:
             raise ValueError(f"coarse_from: {self.coarse_from} needs optimizer 'fnopt' with a "
                              f"coarse grid (got {self.optimizer!r}, coarse {self.coarse})")
 
+    def two_level_options(self) -> dict:
+        """``solve_fnopt``'s two-level keywords for these settings (``{}`` when ``coarse`` is 0)."""
+        if not self.coarse:
+            return {}
+        return {"two_level": self.coarse, "two_level_every": self.coarse_every,
+                "two_level_from": self.coarse_from}
+
     def sheet(self) -> cloth.Sheet:
         """The grid sheet."""
         return cloth.Sheet(self.res[0], self.res[1], self.size)
@@ -154,8 +161,7 @@ def step_function(settings: SimSettings, model=None):
 
         net = model if model is not None else load_pretrained()
         k, r, e, memory = settings.fno_coarse, settings.recycle, settings.fno_every, {}
-        two = {"two_level": settings.coarse, "two_level_every": settings.coarse_every,
-               "two_level_from": settings.coarse_from} if settings.coarse else {}
+        two = settings.two_level_options()
         return lambda p, a0: solve_fnopt(net, p, n, coarse_res=k, recycle=r, memory=memory,
                                          fno_every=e, **two)
     if name == "pcg":

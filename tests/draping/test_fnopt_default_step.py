@@ -9,9 +9,6 @@ solve; the benchmark's ``fnopt-2l`` row is the same step; bad values raise namin
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import pytest
 import torch
 from fnopt_cases import random_problem, tiny_fno
@@ -99,9 +96,8 @@ def test_cli_flags_reach_the_settings():
     assert (a.coarse, a.coarse_every, a.coarse_from) == (8, 2, 3)
 
 
-def test_benchmark_default_row_is_the_default_step():
-    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
-    import bm_fnopt_common as common
+def test_benchmark_default_row_is_the_default_step(script):
+    common = script("benchmarks/bm_fnopt_common.py")
 
     net = tiny_fno(normal=True)
     n = FNOPT_COARSE + 2
